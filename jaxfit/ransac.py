@@ -1,0 +1,310 @@
+"""The engine: sampling, the jitted scoring kernel, the stopping rule, refinement and the
+host loop behind ``jaxfit.fit``.
+
+The cloud is centred and scaled into the unit ball, padded with a validity mask to a
+power-of-two *bucket* of points (so a new cloud size reuses a compiled kernel), and then
+scored in batches of H hypotheses. One compiled kernel per (shape, H, bucket) does
+sample -> estimate (vmap) -> residuals -> MSAC cost and inlier count -> the batch's best.
+Points are scanned in chunks of ``CHUNK`` with all H hypotheses on the vector axis, so no
+H x N matrix exists and XLA's fusion stays on its fast path for any N (PERF.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _checks
+from .shapes import Model
+
+#: Points per scan step of the scoring kernel; every bucket is a multiple of it.
+CHUNK = 256
+#: Smallest point-count bucket; larger clouds pad to the next power of two.
+MIN_BUCKET = 1024
+#: Points drawn per batch for estimators that read the cloud (the box's histograms).
+SUPPORT = 1024
+#: Default threshold as a fraction of the cloud's bounding-box diagonal.
+DEFAULT_THRESHOLD_FRACTION = 0.005
+
+
+class Status(str, enum.Enum):
+    """Why the hypothesis loop stopped."""
+
+    CONVERGED = "converged"  # the confidence-based hypothesis count T was reached
+    MAX_HYPOTHESES = "max_hypotheses"  # the max_hypotheses budget ran out first
+    STALLED = "stalled"  # max_stall hypotheses in a row brought no better model
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """Outcome of ``jaxfit.fit``.
+
+    model : the fitted, bounded primitive (in the input's coordinates).
+    inliers : (N,) bool, points within ``threshold`` of ``model.residual``.
+    num_inliers : int.
+    cost : MSAC cost sum(min(e^2, threshold^2)) of the final model over all points.
+    num_hypotheses : hypotheses drawn and scored.
+    status : a ``Status``.
+    threshold : the inlier threshold used (the default if none was given).
+    """
+
+    model: Model
+    inliers: np.ndarray
+    num_inliers: int
+    cost: float
+    num_hypotheses: int
+    status: Status
+    threshold: float
+
+
+# ----- pure pieces --------------------------------------------------------------------
+
+
+def bucket_size(n: int) -> int:
+    """Padded point count for a cloud of n points: a power of two, at least MIN_BUCKET."""
+    return max(MIN_BUCKET, 1 << (int(n) - 1).bit_length())
+
+
+def required_hypotheses(inlier_ratio: float, sample_size: int, confidence: float) -> float:
+    """T = log(1 - p) / log(1 - w^k): hypotheses needed to draw one all-inlier sample
+    with probability ``confidence`` (p) when a fraction w of the points are inliers."""
+    if inlier_ratio <= 0:
+        return math.inf
+    if inlier_ratio >= 1:
+        return 1.0
+    all_inlier = inlier_ratio**sample_size
+    if all_inlier <= 0:
+        return math.inf
+    return math.ceil(math.log1p(-confidence) / math.log1p(-all_inlier))
+
+
+def draw_samples(key, n_valid, batch_size: int, sample_size: int):
+    """Indices (H, k) of H minimal samples among the first n_valid points, drawn in O(k)
+    each (with replacement), and whether each sample's indices are distinct (H,)."""
+    idx = jax.random.randint(key, (batch_size, sample_size), 0, n_valid)
+    distinct = jnp.ones(batch_size, bool)
+    for i in range(sample_size):
+        for j in range(i + 1, sample_size):
+            distinct &= idx[:, i] != idx[:, j]
+    return idx, distinct
+
+
+def score(cls: type[Model], thetas, valid, points, n_valid, threshold):
+    """MSAC costs (H,) and inlier counts (H,) of hypotheses thetas (H, P) over the first
+    n_valid of points (B, 3), B a multiple of CHUNK. Invalid hypotheses cost +inf."""
+    theta_t = thetas.T  # (P, H): hypotheses on the fast axis
+    t2 = threshold * threshold
+    chunks = points.reshape(-1, CHUNK, 3)
+    starts = jnp.arange(chunks.shape[0]) * CHUNK
+
+    def step(carry, xs):
+        cost, count = carry
+        chunk, start = xs
+        live = ((start + jnp.arange(CHUNK)) < n_valid)[:, None]  # (C, 1)
+        r = cls.theta_residual(theta_t, (chunk[:, 0:1], chunk[:, 1:2], chunk[:, 2:3]), jnp)
+        r2 = r * r  # (C, H)
+        cost = cost + jnp.sum(jnp.where(live, jnp.minimum(r2, t2), 0.0), axis=0)
+        count = count + jnp.sum(live & (r2 < t2), axis=0)
+        return (cost, count), None
+
+    zero = jnp.zeros(thetas.shape[0], points.dtype)
+    (cost, count), _ = jax.lax.scan(step, (zero, zero.astype(jnp.int32)), (chunks, starts))
+    return jnp.where(valid, cost, jnp.inf), count
+
+
+def estimate_batch(cls: type[Model], samples, support):
+    """vmap'd estimator: samples (H, k, 3), support (M, 3) -> thetas (H, P), valid (H,)."""
+    return jax.vmap(cls.estimate, in_axes=(0, None))(samples, support)
+
+
+@partial(jax.jit, static_argnames=("cls", "batch_size"))
+def batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold):
+    """The one kernel: H hypotheses from ``key`` scored on padded points (B, 3).
+    Returns the best (theta (P,), cost, inlier count) and the number of valid samples."""
+    key_sample, key_support = jax.random.split(key)
+    idx, distinct = draw_samples(key_sample, n_valid, batch_size, cls.sample_size)
+    support = points[jax.random.randint(key_support, (SUPPORT,), 0, n_valid)]
+    thetas, valid = estimate_batch(cls, points[idx], support)
+    valid &= distinct
+    costs, counts = score(cls, thetas, valid, points, n_valid, threshold)
+    best = jnp.argmin(costs)
+    return thetas[best], costs[best], counts[best], jnp.sum(valid)
+
+
+def _msac(cls, theta, p, live, threshold):
+    r = cls.theta_residual(theta, p, jnp)
+    return jnp.sum(jnp.where(live, jnp.minimum(r * r, threshold * threshold), 0.0))
+
+
+@partial(jax.jit, static_argnames=("cls", "max_rounds", "steps"))
+def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds: int = 20,
+                 steps: int = 10):
+    """Local optimisation of a hypothesis theta (P,) on padded points (B, 3).
+
+    Each round takes the current inliers and runs ``steps`` Levenberg-Marquardt steps on
+    their signed geometric residuals (projected back with ``cls.canonicalize``). Rounds go
+    on while they lower the MSAC cost over all points (at most ``max_rounds``), so the
+    inlier set can grow from a rough hypothesis to the whole surface, and refinement
+    never makes the model worse by the loop's own measure.
+    Returns the refined theta, its MSAC cost and inlier count.
+    """
+    p = (points[:, 0], points[:, 1], points[:, 2])
+    live = jnp.arange(points.shape[0]) < n_valid
+
+    def lm_step(_, carry):
+        th, lam, sse, weight = carry
+        resid = lambda t: cls.theta_residual(t, p, jnp) * weight  # noqa: E731
+        r, jac = resid(th), jax.jacfwd(resid)(th)
+        normal = jac.T @ jac
+        damping = lam * (jnp.diag(jnp.diag(normal)) + 1e-9 * jnp.eye(th.size, dtype=th.dtype))
+        candidate = cls.canonicalize(th + jnp.linalg.solve(normal + damping, -(jac.T @ r)))
+        new_sse = jnp.sum(resid(candidate) ** 2)
+        better = jnp.isfinite(new_sse) & (new_sse < sse) & jnp.all(jnp.isfinite(candidate))
+        return (jnp.where(better, candidate, th), jnp.where(better, lam * 0.3, lam * 10.0),
+                jnp.where(better, new_sse, sse), weight)
+
+    def lo_round(carry):
+        th, cost, _, rounds = carry
+        r = cls.theta_residual(th, p, jnp)
+        weight = (live & (jnp.abs(r) < threshold)).astype(th.dtype)
+        init = (th, jnp.asarray(1e-3, th.dtype), jnp.sum((r * weight) ** 2), weight)
+        candidate = jax.lax.fori_loop(0, steps, lm_step, init)[0]
+        new_cost = _msac(cls, candidate, p, live, threshold)
+        better = new_cost < cost
+        return (jnp.where(better, candidate, th), jnp.where(better, new_cost, cost), better,
+                rounds + 1)
+
+    def going(carry):
+        return carry[2] & (carry[3] < max_rounds)
+
+    cost = _msac(cls, theta, p, live, threshold)
+    theta, cost, _, _ = jax.lax.while_loop(going, lo_round, (theta, cost, True, 0))
+    count = jnp.sum(live & (jnp.abs(cls.theta_residual(theta, p, jnp)) < threshold))
+    return theta, cost, count
+
+
+# ----- host side ----------------------------------------------------------------------
+
+
+def _normalise(points: np.ndarray):
+    """Centre (3,) and scale that map the cloud into the unit ball."""
+    center = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    scale = float(np.linalg.norm(points - center, axis=1).max())
+    if not scale > 0:
+        raise ValueError("all points coincide: there is no shape to fit")
+    return center, scale
+
+
+def _padded(unit_points: np.ndarray, dtype):
+    n = unit_points.shape[0]
+    out = np.zeros((bucket_size(n), 3), dtype=dtype)
+    out[:n] = unit_points
+    return jnp.asarray(out)
+
+
+def fit(
+    points,
+    shape,
+    *,
+    normals=None,
+    threshold: float | None = None,
+    confidence: float = 0.99,
+    max_hypotheses: int = 100_000,
+    batch_size: int = 1024,
+    max_stall: int = 20_000,
+    refine: bool = True,
+    key=0,
+) -> FitResult:
+    """Fit one primitive to a point cloud with batched RANSAC and MSAC scoring.
+
+    Parameters
+    ----------
+    points : (N, 3) array-like of finite coordinates.
+    shape : "plane", "sphere", "cylinder", "cone", "box", or the model class.
+    normals : optional (N, 3) normals. Validated, but the thesis's estimators used here
+        do not read them.
+    threshold : inlier distance, in the points' units. Default: 0.5 % of the diagonal of
+        the cloud's axis-aligned bounding box.
+    confidence : probability p of having drawn one all-inlier sample when stopping.
+    max_hypotheses : budget of hypotheses (rounded up to whole batches).
+    batch_size : hypotheses per kernel call (H); each value compiles its own kernel.
+    max_stall : stop after this many hypotheses without a better model.
+    refine : local optimisation (LO-RANSAC): each new best hypothesis is refitted on its
+        inliers by Levenberg-Marquardt, its inliers reclassified, until the MSAC cost
+        stops falling; the stopping rule then uses the refined inlier count.
+    key : int seed or JAX PRNG key; batch b uses ``fold_in(key, b)``.
+
+    Returns
+    -------
+    FitResult
+    """
+    cls = _checks.model_class(shape)
+    cloud = _checks.points_for(points, cls)
+    _checks.normals_for(normals, cloud)
+    confidence = _checks.probability(confidence, "confidence")
+    max_hypotheses = _checks.positive(max_hypotheses, "max_hypotheses", integer=True)
+    batch_size = _checks.positive(batch_size, "batch_size", integer=True)
+    max_stall = _checks.positive(max_stall, "max_stall", integer=True)
+    center, scale = _normalise(cloud)
+    if threshold is None:
+        diagonal = np.linalg.norm(cloud.max(axis=0) - cloud.min(axis=0))
+        threshold = DEFAULT_THRESHOLD_FRACTION * diagonal
+    threshold = _checks.positive(threshold, "threshold")
+    key = _checks.prng_key(key)
+
+    dtype = jax.dtypes.canonicalize_dtype(np.float64)  # float32 unless x64 is on
+    unit = (cloud - center) / scale
+    padded = _padded(unit, dtype)
+    n = cloud.shape[0]
+    unit_threshold = jnp.asarray(threshold / scale, dtype)
+
+    best_theta, best_cost, best_count, best_raw = None, math.inf, 0, math.inf
+    drawn = last_improvement = 0
+    status = Status.MAX_HYPOTHESES
+    while drawn < max_hypotheses:
+        batch_key = jax.random.fold_in(key, drawn // batch_size)
+        theta, cost, count, _ = batch_best(cls, batch_size, padded, n, batch_key, unit_threshold)
+        drawn += batch_size
+        if float(cost) < best_raw:
+            # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones
+            # only, so a rough but right one is not hidden behind a polished wrong one).
+            best_raw = float(cost)
+            if refine:
+                theta, cost, count = refine_theta(cls, theta, padded, n, unit_threshold)
+            if float(cost) < best_cost:
+                best_theta, best_cost, best_count = theta, float(cost), int(count)
+                last_improvement = drawn
+        needed = max(required_hypotheses(best_count / n, cls.sample_size, confidence),
+                     cls.min_hypotheses)
+        if drawn >= needed:
+            status = Status.CONVERGED
+            break
+        if drawn - last_improvement >= max_stall:
+            status = Status.STALLED
+            break
+    if best_theta is None:
+        raise _checks.FitError(
+            f"no valid {cls.name} hypothesis in {drawn} samples: the points are degenerate "
+            f"for a {cls.name} (coincident, collinear or coplanar)"
+        )
+    model = _bounded(cls, np.asarray(best_theta, np.float64), unit, threshold / scale)
+    model = model.rescaled(scale, center)
+    residual = model.residual(cloud)
+    inliers = np.abs(residual) < threshold
+    cost = float(np.sum(np.minimum(residual**2, threshold**2)))
+    return FitResult(model, inliers, int(inliers.sum()), cost, drawn, status, threshold)
+
+
+def _bounded(cls, theta, unit, unit_threshold):
+    """The bounded model from a hypothesis, in the normalised frame (float64)."""
+    residual = cls.theta_residual(theta, (unit[:, 0], unit[:, 1], unit[:, 2]), np)
+    inliers = np.abs(residual) < unit_threshold
+    if not inliers.any():
+        raise _checks.FitError(f"the best {cls.name} hypothesis has no inliers")
+    return cls.from_theta(theta, unit, inliers, unit_threshold)

@@ -1,0 +1,153 @@
+"""The contract every primitive fulfils, and the model base class.
+
+A primitive is one frozen dataclass (the *model*: public, canonical parameters, NumPy
+methods for distance, export and serialisation) that also carries the pieces the engine
+needs as class-level functions:
+
+- ``sample_size``: points in a minimal sample set (k).
+- ``estimate(sample, support) -> (theta, valid)``: closed-form estimator, JAX, called
+  under ``vmap``. ``sample`` is (k, 3); ``support`` is an (M, 3) subset of the cloud for
+  estimators that read the whole cloud (the box's histogram modes). It never raises and
+  never returns NaN: degenerate samples give ``valid = False`` and finite parameters.
+- ``theta_residual(theta, p, xp)``: signed distance of points to the *unbounded*
+  surface of hypothesis ``theta`` (P, ...). ``p`` is a sequence of three coordinate
+  arrays; every argument broadcasts, so the engine passes (H,) parameters against
+  (C, 1) coordinates and gets a (C, H) block with hypotheses on the fast axis. ``xp`` is
+  ``jax.numpy`` or ``numpy``: one formula serves the kernel, the refinement and NumPy.
+- ``canonicalize(theta)``: projects a flat parameter vector back onto the valid set
+  (unit axes, positive radius) after a refinement step.
+- ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
+  height / extents / faces fixed from the inliers after the loop (NumPy, float64).
+
+``theta`` is the flat hypothesis vector of length ``num_params``; it is an engine detail,
+documented per primitive, while the dataclass fields are the public parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import jax
+import numpy as np
+
+#: name -> model class, filled by ``register``.
+REGISTRY: dict[str, type[Model]] = {}
+
+# How each field changes when the cloud is mapped by p -> p * scale + shift.
+_POINT, _LENGTH, _INVARIANT = "point", "length", "invariant"
+
+
+def register(cls):
+    """Make ``cls`` a frozen dataclass, a JAX pytree, and a known primitive."""
+    cls = dataclasses.dataclass(frozen=True)(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+class Model:
+    """Base class of the primitives. See the module docstring for the contract."""
+
+    name: ClassVar[str]
+    sample_size: ClassVar[int]
+    num_params: ClassVar[int]
+    #: Floor on the confidence-based hypothesis count T. The rule assumes any all-inlier
+    #: sample gives a good model; the thesis's cylinder and cone also need their three
+    #: circle points on one cross-section, which it does not model.
+    min_hypotheses: ClassVar[int] = 0
+    #: field name -> (trailing shape, kind), the kind saying how it maps under scaling.
+    field_specs: ClassVar[dict[str, tuple[tuple[int, ...], str]]]
+
+    # ----- engine contract (overridden per primitive) ---------------------------------
+    @staticmethod
+    def estimate(sample, support):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @staticmethod
+    def theta_residual(theta, p, xp):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @staticmethod
+    def canonicalize(theta):
+        return theta
+
+    @classmethod
+    def from_theta(cls, theta, points, inliers, threshold):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    # ----- public model API --------------------------------------------------------------
+    def residual(self, points):
+        """Signed distance (N,) of points (N, 3) to the surface used to classify inliers:
+        the unbounded surface for plane, sphere, cylinder and cone; the six faces for a box."""
+        return self.theta_residual(self.theta(), components(as_points(points)), np)
+
+    def theta(self):
+        """The flat hypothesis vector (num_params,) of this model (unbatched)."""
+        raise NotImplementedError
+
+    def distance(self, points):
+        """Unsigned distance (N,) of points (N, 3) to the closed, bounded surface."""
+        raise NotImplementedError
+
+    def to_mesh(self):
+        """A ``trimesh.Trimesh`` of the bounded primitive."""
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        """JSON-ready parameters: ``{"type": name, field: list | float, ...}``."""
+        out = {"type": self.name}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = None if value is None else np.asarray(value, dtype=float).tolist()
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Model:
+        """Inverse of ``to_dict``. Called on ``Model`` it dispatches on ``data["type"]``."""
+        kind = data.get("type", getattr(cls, "name", None))
+        if kind not in REGISTRY:
+            raise ValueError(f"unknown primitive type {kind!r}; expected one of {sorted(REGISTRY)}")
+        target = REGISTRY[kind]
+        if cls is not Model and target is not cls:
+            raise ValueError(f"{cls.__name__}.from_dict got a {kind!r} dictionary")
+        kwargs = {}
+        for field, (shape, _) in target.field_specs.items():
+            if field not in data:
+                raise ValueError(f"{kind} dictionary is missing the field {field!r}")
+            value = data[field]
+            if value is None:
+                kwargs[field] = None
+                continue
+            arr = np.asarray(value, dtype=np.float64)
+            if arr.shape[arr.ndim - len(shape):] != shape or not np.all(np.isfinite(arr)):
+                raise ValueError(f"{kind} field {field!r} must be finite with shape (..., {shape})")
+            kwargs[field] = arr
+        return target(**kwargs)
+
+    def rescaled(self, scale: float, shift) -> Model:
+        """The same model in coordinates p * scale + shift (the engine fits a normalised cloud)."""
+        changes = {}
+        for field, (_, kind) in self.field_specs.items():
+            value = getattr(self, field)
+            if value is None or kind == _INVARIANT:
+                continue
+            changes[field] = value * scale + (shift if kind == _POINT else 0.0)
+        return dataclasses.replace(self, **changes)
+
+    def _array(self, field):
+        return np.asarray(getattr(self, field), dtype=np.float64)
+
+
+def as_points(points):
+    """(N, 3) float64 view for the NumPy model methods, with a clear error otherwise."""
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {arr.shape}")
+    return arr
+
+
+def components(points):
+    """Coordinate arrays (x, y, z) of an (N, 3) array, in the form theta_residual takes."""
+    return points[:, 0], points[:, 1], points[:, 2]

@@ -1,0 +1,123 @@
+"""Small geometric helpers shared by the estimators (JAX) and the models (NumPy).
+
+Every function here is branch-free and NaN-free for any finite input, so it can run
+inside ``vmap`` on degenerate samples: callers get a validity flag instead of an error.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+# Relative tolerance for degenerate samples. Points are normalised to the unit ball by
+# the engine, so an absolute floor on lengths is meaningful too.
+SIN_TOL = 1e-4
+LEN_TOL = 1e-6
+# Hypotheses whose radius/apex lies this far outside the unit ball are useless for a
+# normalised cloud (an almost-flat sample gives a huge sphere); they are masked.
+MAX_EXTENT = 10.0
+# A gap of this many thresholds along a fitted surface separates its points from strays
+# (outliers near the surface's unbounded continuation) when bounds are fixed.
+GAP_THRESHOLDS = 5.0
+
+
+def safe_norm(v, axis=-1):
+    """Euclidean norm whose gradient stays finite at 0. v : (..., 3) -> (...)."""
+    sq = jnp.sum(v * v, axis=axis)
+    return jnp.sqrt(jnp.where(sq > 0, sq, 1.0)) * (sq > 0)
+
+
+def safe_normalize(v):
+    """Unit vector along v (..., 3) and its length; a zero vector maps to +z."""
+    n = safe_norm(v)
+    ok = n > 0
+    fallback = jnp.array([0.0, 0.0, 1.0], v.dtype)
+    unit = jnp.where(ok[..., None], v / jnp.where(ok, n, 1.0)[..., None], fallback)
+    return unit, n
+
+
+def triangle(a, b, c):
+    """Plane of three points (3,) each: unit normal along (b - a) x (c - a), and whether
+    the points are distinct and not collinear. Also returns the edges u, v and u x v."""
+    u, v = b - a, c - a
+    w = jnp.cross(u, v)
+    lu, lv, lw = safe_norm(u), safe_norm(v), safe_norm(b - c)
+    valid = (safe_norm(w) > SIN_TOL * lu * lv) & (jnp.minimum(jnp.minimum(lu, lv), lw) > LEN_TOL)
+    normal, _ = safe_normalize(w)
+    return normal, valid, (u, v, w)
+
+
+def circle3(a, b, c):
+    """Circle through three points (3,) each.
+
+    Returns (centre (3,), unit normal (3,), radius (), valid ()): the circumcircle of the
+    triangle in its own plane, with normal (b - a) x (c - a).
+    """
+    normal, valid, (u, v, w) = triangle(a, b, c)
+    denom = jnp.where(valid, 2.0 * jnp.dot(w, w), 1.0)
+    offset = (jnp.dot(u, u) * jnp.cross(v, w) + jnp.dot(v, v) * jnp.cross(w, u)) / denom
+    radius = safe_norm(offset)
+    return a + offset, normal, radius, valid & (radius < MAX_EXTENT)
+
+
+def frame(axis):
+    """Right-handed rotation (3, 3) whose third column is the unit vector ``axis`` (3,).
+
+    NumPy, deterministic: the first column is the axis crossed with the coordinate axis
+    least aligned with it, so nearby axes give nearby frames.
+    """
+    axis = np.asarray(axis, dtype=np.float64)
+    helper = np.eye(3)[np.argmin(np.abs(axis))]
+    x = np.cross(helper, axis)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(axis, x), axis], axis=1)
+
+
+def transform(rotation, translation):
+    """4x4 homogeneous matrix from a (3, 3) rotation and a (3,) translation."""
+    m = np.eye(4)
+    m[:3, :3] = rotation
+    m[:3, 3] = translation
+    return m
+
+
+def axial_radial(points, origin, axis):
+    """Axial coordinate t (N,) and radial distance rho (N,) of points (N, 3) about a line."""
+    v = np.asarray(points, dtype=np.float64) - origin
+    t = v @ axis
+    rho = np.linalg.norm(v - t[:, None] * axis, axis=1)
+    return t, rho
+
+
+def segment_distance_2d(px, py, ax, ay, bx, by):
+    """Distance of 2-D points (px, py) (N,) to the segment from (ax, ay) to (bx, by)."""
+    dx, dy = bx - ax, by - ay
+    length2 = dx * dx + dy * dy
+    s = np.clip(((px - ax) * dx + (py - ay) * dy) / max(length2, 1e-300), 0.0, 1.0)
+    return np.hypot(px - (ax + s * dx), py - (ay + s * dy))
+
+
+def sign_canonical(vectors):
+    """Flip each row of (..., 3) so its largest-magnitude component is positive (NumPy).
+    This is the documented sign rule for plane normals, cylinder axes and box axes."""
+    v = np.asarray(vectors, dtype=np.float64)
+    big = np.take_along_axis(v, np.argmax(np.abs(v), axis=-1)[..., None], axis=-1)
+    return v * np.where(big < 0, -1.0, 1.0)
+
+
+def main_interval(values, gap):
+    """(lo, hi) of the main run of values (N,) along an axis: bins ``gap`` wide holding at
+    least a fifth of the fullest bin's count, the contiguous run of them with the most
+    values. Strays (outliers near a surface's unbounded continuation) are far sparser
+    than the surface, so they fall below the cut and do not stretch the bounds."""
+    v = np.asarray(values, dtype=np.float64)
+    edges = np.arange(v.min(), v.max() + gap, gap) if v.max() > v.min() else np.array([v.min()])
+    which = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, len(edges) - 1)
+    counts = np.bincount(which, minlength=len(edges))
+    dense = np.r_[False, counts >= 0.2 * counts.max(), False]
+    starts = np.flatnonzero(~dense[:-1] & dense[1:])
+    ends = np.flatnonzero(dense[:-1] & ~dense[1:])
+    totals = [counts[a:b].sum() for a, b in zip(starts, ends)]
+    a, b = starts[int(np.argmax(totals))], ends[int(np.argmax(totals))]
+    inside = v[(which >= a) & (which < b)]
+    return inside.min(), inside.max()

@@ -1,0 +1,159 @@
+"""Box from five points and histogram modes (THESIS.md section 3).
+
+p1..p3 give the first face's normal n1; the plane through p4, its projection on that face
+and p5 is orthogonal to it (n2); n3 = n1 x n2. Each face's offset is not the sample's own
+but the mode of the histogram of the cloud's projections on n_i, which is where most
+points lie. After the loop the three parallel faces are found from the histograms of the
+points that are not inliers of the first three.
+
+theta = (n1 (3), n2 (3), n3 (3), D1, D2, D3) with faces n_i . p = D_i.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from . import _geometry as g
+from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+
+#: Bins of the in-loop histogram over [-1, 1], the range of a normalised cloud.
+HISTOGRAM_BINS = 128
+# After the loop: bins are one threshold wide; counts are summed over _SUM_BINS so a
+# face spans several bins, then median-filtered over _MEDIAN_BINS to drop lone spikes.
+_SUM_BINS = 3
+_MEDIAN_BINS = 3
+
+
+
+def histogram_mode_offsets(normals, support):
+    """Offsets (3,) of the three planes with normals (3, 3) (rows) through the densest slab.
+
+    The projections of ``support`` (M, 3), points in the unit ball, are binned into
+    ``HISTOGRAM_BINS`` bins over [-1, 1]; the offset is the mean projection in the fullest
+    bin (the first on ties), which is closer to the face than the bin's centre.
+    """
+    proj = support @ normals.T  # (M, 3)
+    bins = jnp.clip(jnp.floor((proj + 1.0) * (HISTOGRAM_BINS / 2)), 0, HISTOGRAM_BINS - 1)
+    bins = bins.astype(jnp.int32)
+    counts = jnp.zeros((3, HISTOGRAM_BINS), proj.dtype).at[jnp.arange(3)[None, :], bins].add(1.0)
+    in_mode = bins == jnp.argmax(counts, axis=1)[None, :]
+    return jnp.sum(jnp.where(in_mode, proj, 0.0), axis=0) / jnp.maximum(jnp.sum(in_mode, axis=0), 1)
+
+
+@register
+class Box(Model):
+    """Oriented box.
+
+    center : (..., 3).
+    rotation : (..., 3, 3) proper rotation whose columns are the box's axes; sign rule:
+        the first two columns have their largest-magnitude component positive.
+    extents : (..., 3) full side lengths along those columns.
+    """
+
+    center: np.ndarray
+    rotation: np.ndarray
+    extents: np.ndarray
+
+    name: ClassVar[str] = "box"
+    sample_size: ClassVar[int] = 5
+    num_params: ClassVar[int] = 12
+    field_specs: ClassVar = {
+        "center": ((3,), _POINT),
+        "rotation": ((3, 3), _INVARIANT),
+        "extents": ((3,), _LENGTH),
+    }
+
+    @staticmethod
+    def estimate(sample, support):
+        n1, valid, _ = g.triangle(sample[0], sample[1], sample[2])
+        h4 = jnp.dot(sample[3] - sample[0], n1)
+        foot4 = sample[3] - h4 * n1  # p4 projected on the first face
+        n2, length = g.safe_normalize(jnp.cross(sample[3] - foot4, sample[4] - sample[3]))
+        valid &= length > g.SIN_TOL * jnp.abs(h4) * g.safe_norm(sample[4] - sample[3])
+        valid &= jnp.abs(h4) > g.LEN_TOL
+        normals = jnp.stack([n1, n2, jnp.cross(n1, n2)])
+        offsets = histogram_mode_offsets(normals, support)
+        return jnp.concatenate([normals.reshape(-1), offsets]), valid
+
+    @staticmethod
+    def theta_residual(theta, p, xp):
+        # Distance to the nearest of the three planes, keeping its sign.
+        r = [theta[3 * i] * p[0] + theta[3 * i + 1] * p[1] + theta[3 * i + 2] * p[2] - theta[9 + i]
+             for i in range(3)]
+        near01 = xp.where(xp.abs(r[0]) <= xp.abs(r[1]), r[0], r[1])
+        return xp.where(xp.abs(near01) <= xp.abs(r[2]), near01, r[2])
+
+    @staticmethod
+    def canonicalize(theta):
+        # Nearest rotation (polar decomposition) to the refined normals.
+        u, _, vt = jnp.linalg.svd(theta[:9].reshape(3, 3))
+        return jnp.concatenate([(u @ vt).reshape(-1), theta[9:]])
+
+    @classmethod
+    def from_theta(cls, theta, points, inliers, threshold):
+        normals = np.asarray(theta[:9], np.float64).reshape(3, 3)
+        near, far = np.asarray(theta[9:], np.float64), np.empty(3)
+        proj = points @ normals.T  # (N, 3)
+        face = np.argmin(np.abs(proj - near), axis=1)
+        for i in range(3):
+            far[i] = _opposite_face(proj[~inliers, i], near[i], threshold)
+            if np.isnan(far[i]):
+                # No clear peak (the far face is hidden or too noisy): the other faces'
+                # inliers still show how far the box reaches along n_i.
+                lo, hi = g.main_interval(proj[inliers & (face != i), i], g.GAP_THRESHOLDS * threshold)
+                far[i] = hi if hi - near[i] > near[i] - lo else lo
+        rotation = g.sign_canonical(normals[:2])
+        rotation = np.stack([rotation[0], rotation[1], np.cross(rotation[0], rotation[1])], 1)
+        middle = normals.T @ (0.5 * (near + far))
+        return cls(middle, rotation, np.abs(far - near))
+
+    def residual(self, points):
+        local = (as_points(points) - self._array("center")) @ self._array("rotation")
+        q = np.abs(local) - 0.5 * self._array("extents")
+        return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+    def sample(self, count, rng):
+        """(count, 3) points uniform on the six faces and their outward normals."""
+        ext = self._array("extents")
+        areas = np.array([ext[1] * ext[2], ext[0] * ext[2], ext[0] * ext[1]]).repeat(2)
+        face = rng.choice(6, size=count, p=areas / areas.sum())
+        axis, sign = face // 2, np.where(face % 2, 1.0, -1.0)
+        local = (rng.uniform(-0.5, 0.5, (count, 3))) * ext
+        local[np.arange(count), axis] = sign * 0.5 * ext[axis]
+        normals = np.zeros((count, 3))
+        normals[np.arange(count), axis] = sign
+        rot = self._array("rotation")
+        return local @ rot.T + self.center, normals @ rot.T
+
+    def distance(self, points):
+        return np.abs(self.residual(points))
+
+    def to_mesh(self):
+        matrix = g.transform(self._array("rotation"), self._array("center"))
+        return trimesh.creation.box(extents=self._array("extents"), transform=matrix)
+
+
+def _opposite_face(proj, near, threshold):
+    """Offset of the face parallel to the one at ``near``: the highest peak of the
+    median-filtered histogram (bins one threshold wide) of the leftover projections
+    (M,), away from the near face; NaN when no peak stands out."""
+    if proj.size < _MEDIAN_BINS:
+        return np.nan
+    edges = np.arange(proj.min(), proj.max() + 2 * threshold, threshold)
+    counts, _ = np.histogram(proj, bins=edges)
+    counts = np.convolve(counts, np.ones(_SUM_BINS), mode="same")
+    padded = np.pad(counts, _MEDIAN_BINS // 2, mode="edge")
+    smooth = np.median(np.lib.stride_tricks.sliding_window_view(padded, _MEDIAN_BINS), axis=1)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    smooth[np.abs(centres - near) < 3 * threshold] = 0
+    peak = int(np.argmax(smooth))
+    background = np.median(smooth[smooth > 0]) if np.any(smooth > 0) else 0.0
+    if smooth[peak] < max(3.0, 3.0 * background):
+        return np.nan
+    close = np.abs(proj - centres[peak]) < threshold
+    return float(proj[close].mean())

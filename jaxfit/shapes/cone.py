@@ -1,0 +1,123 @@
+"""Cone from four points, the thesis's apex construction (THESIS.md section 3).
+
+p1..p3 give a plane, its circumcircle (c0, r) and the axis through c0 along the plane
+normal. p4 projected on the plane fixes the meridian half-plane through p4; the circle
+meets it at s, and the line through s and p4 crosses the axis at the apex.
+
+theta = (apex (3), unit axis (3) pointing from the apex into the cone, half_angle).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from . import _geometry as g
+from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+
+# Half-angles this close to 0 or 90 degrees are a cylinder or a plane, not a cone.
+_MIN_ANGLE = 1e-3
+
+
+@register
+class Cone(Model):
+    """Finite right circular cone.
+
+    apex : (..., 3).
+    axis : (..., 3) unit, pointing from the apex into the cone.
+    half_angle : (...,) in radians, in (0, pi/2).
+    height : (...,) distance from the apex to the base disk along the axis.
+    """
+
+    apex: np.ndarray
+    axis: np.ndarray
+    half_angle: np.ndarray
+    height: np.ndarray
+
+    name: ClassVar[str] = "cone"
+    sample_size: ClassVar[int] = 4
+    num_params: ClassVar[int] = 7
+    min_hypotheses: ClassVar[int] = 16384  # see Model.min_hypotheses
+    field_specs: ClassVar = {
+        "apex": ((3,), _POINT),
+        "axis": ((3,), _INVARIANT),
+        "half_angle": ((), _INVARIANT),
+        "height": ((), _LENGTH),
+    }
+
+    @staticmethod
+    def estimate(sample, support):
+        c0, n, r, valid = g.circle3(sample[0], sample[1], sample[2])
+        # Work in the meridian half-plane of p4: coordinates (rho, h) about the axis.
+        v4 = sample[3] - c0
+        h4 = jnp.dot(v4, n)
+        rho4 = g.safe_norm(v4 - h4 * n)
+        # The line from s = (r, 0) through p4 = (rho4, h4) meets the axis rho = 0 at h_apex.
+        slope = rho4 - r
+        valid &= (rho4 > g.LEN_TOL) & (jnp.abs(h4) > g.LEN_TOL) & (jnp.abs(slope) > g.LEN_TOL)
+        h_apex = -r * h4 / jnp.where(valid, slope, 1.0)
+        half_angle = jnp.arctan2(jnp.abs(slope), jnp.abs(h4))
+        valid &= (half_angle > _MIN_ANGLE) & (half_angle < jnp.pi / 2 - _MIN_ANGLE)
+        valid &= jnp.abs(h_apex) < g.MAX_EXTENT
+        # The circle's centre lies inside the cone, so the axis points from apex to c0.
+        axis = jnp.where(h_apex < 0, n, -n)
+        return jnp.concatenate([c0 + h_apex * n, axis, half_angle[None]]), valid
+
+    @staticmethod
+    def theta_residual(theta, p, xp):
+        # e = |p - apex| sin(phi - half_angle), phi the angle between p - apex and the axis,
+        # expanded so that no arccos is needed: cos(a) |v x axis| - sin(a) (v . axis).
+        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
+        t = dx * theta[3] + dy * theta[4] + dz * theta[5]
+        rho = xp.sqrt(xp.maximum(dx * dx + dy * dy + dz * dz - t * t, 1e-30))
+        return xp.cos(theta[6]) * rho - xp.sin(theta[6]) * t
+
+    @staticmethod
+    def canonicalize(theta):
+        axis, _ = g.safe_normalize(theta[3:6])
+        return jnp.concatenate([theta[:3], axis, theta[6:]])
+
+    @classmethod
+    def from_theta(cls, theta, points, inliers, threshold):
+        apex, axis = np.asarray(theta[:3], np.float64), np.asarray(theta[3:6], np.float64)
+        t, _ = g.axial_radial(points[inliers], apex, axis)
+        if np.median(t) < 0:  # the inliers sit on the other nappe: turn the cone around
+            axis, t = -axis, -t
+        _, hi = g.main_interval(t, g.GAP_THRESHOLDS * threshold)
+        return cls(apex, axis, np.float64(theta[6]), np.float64(max(hi, 0.0)))
+
+    @property
+    def base_radius(self):
+        return self.height * np.tan(self.half_angle)
+
+    def theta(self):
+        return np.concatenate([self._array("apex"), self._array("axis"), [float(self.half_angle)]])
+
+    def sample(self, count, rng):
+        """(count, 3) points uniform on the side (not the base) and their outward normals."""
+        rot = g.frame(self.axis)
+        angle = rng.uniform(0, 2 * np.pi, count)
+        radial = np.stack([np.cos(angle), np.sin(angle), np.zeros(count)], 1) @ rot.T
+        t = np.sqrt(rng.uniform(size=count)) * self.height  # area grows with t
+        points = self.apex + np.outer(t, self.axis) + (t * np.tan(self.half_angle))[:, None] * radial
+        normals = np.cos(self.half_angle) * radial - np.sin(self.half_angle) * self.axis
+        return points, normals
+
+    def distance(self, points):
+        t, rho = g.axial_radial(as_points(points), self._array("apex"), self._array("axis"))
+        h, r = float(self.height), float(self.base_radius)
+        side = g.segment_distance_2d(t, rho, 0.0, 0.0, h, r)
+        base = g.segment_distance_2d(t, rho, h, 0.0, h, r)
+        return np.minimum(side, base)
+
+    def to_mesh(self, sections: int = 64):
+        # trimesh's cone has its base at z = 0 and its apex at +z; ours points along -axis.
+        axis = self._array("axis")
+        matrix = g.transform(g.frame(-axis), self._array("apex") + self.height * axis)
+        return trimesh.creation.cone(
+            radius=float(self.base_radius), height=float(self.height), sections=sections,
+            transform=matrix,
+        )

@@ -1,0 +1,92 @@
+"""Cylinder from three points: the plane of the sample gives the axis direction, its
+circumcircle the axis position and the radius (THESIS.md section 3).
+
+theta = (point on axis (3), unit axis (3), radius); the height and centre are fixed after
+the loop from the inliers' projections on the axis.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from . import _geometry as g
+from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+
+
+@register
+class Cylinder(Model):
+    """Finite cylinder.
+
+    center : (..., 3) middle of the axis segment.
+    axis : (..., 3) unit; sign rule: its largest-magnitude component is positive.
+    radius : (...,) positive.
+    height : (...,) length of the axis segment.
+    """
+
+    center: np.ndarray
+    axis: np.ndarray
+    radius: np.ndarray
+    height: np.ndarray
+
+    name: ClassVar[str] = "cylinder"
+    sample_size: ClassVar[int] = 3
+    num_params: ClassVar[int] = 7
+    min_hypotheses: ClassVar[int] = 8192  # see Model.min_hypotheses
+    field_specs: ClassVar = {
+        "center": ((3,), _POINT),
+        "axis": ((3,), _INVARIANT),
+        "radius": ((), _LENGTH),
+        "height": ((), _LENGTH),
+    }
+
+    @staticmethod
+    def estimate(sample, support):
+        center, normal, radius, valid = g.circle3(sample[0], sample[1], sample[2])
+        return jnp.concatenate([center, normal, radius[None]]), valid
+
+    @staticmethod
+    def theta_residual(theta, p, xp):
+        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
+        t = dx * theta[3] + dy * theta[4] + dz * theta[5]
+        rho2 = dx * dx + dy * dy + dz * dz - t * t
+        return xp.sqrt(xp.maximum(rho2, 1e-30)) - theta[6]
+
+    @staticmethod
+    def canonicalize(theta):
+        axis, _ = g.safe_normalize(theta[3:6])
+        return jnp.concatenate([theta[:3], axis, jnp.abs(theta[6:])])
+
+    @classmethod
+    def from_theta(cls, theta, points, inliers, threshold):
+        axis = g.sign_canonical(theta[3:6])
+        t, _ = g.axial_radial(points[inliers], theta[:3], axis)
+        lo, hi = g.main_interval(t, g.GAP_THRESHOLDS * threshold)
+        center = theta[:3] + axis * 0.5 * (lo + hi)
+        return cls(center, axis, np.float64(abs(theta[6])), np.float64(hi - lo))
+
+    def theta(self):
+        return np.concatenate([self._array("center"), self._array("axis"), [float(self.radius)]])
+
+    def sample(self, count, rng):
+        """(count, 3) points uniform on the side (not the caps) and their normals."""
+        rot = g.frame(self.axis)
+        angle = rng.uniform(0, 2 * np.pi, count)
+        normals = np.stack([np.cos(angle), np.sin(angle), np.zeros(count)], 1) @ rot.T
+        t = rng.uniform(-0.5, 0.5, count) * self.height
+        return self.center + self.radius * normals + np.outer(t, self.axis), normals
+
+    def distance(self, points):
+        t, rho = g.axial_radial(as_points(points), self._array("center"), self._array("axis"))
+        dx, dy = rho - self.radius, np.abs(t) - 0.5 * self.height
+        outside = np.hypot(np.maximum(dx, 0.0), np.maximum(dy, 0.0))
+        return np.abs(outside + np.minimum(np.maximum(dx, dy), 0.0))
+
+    def to_mesh(self, sections: int = 64):
+        matrix = g.transform(g.frame(self.axis), self.center)
+        return trimesh.creation.cylinder(
+            radius=float(self.radius), height=float(self.height), sections=sections, transform=matrix
+        )

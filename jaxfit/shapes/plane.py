@@ -1,0 +1,107 @@
+"""Plane: n . p + offset = 0, optionally bounded to the disk its inliers cover.
+
+theta = (nx, ny, nz, offset); three points per sample.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from . import _geometry as g
+from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+
+
+@register
+class Plane(Model):
+    """Plane ``normal . p + offset = 0``.
+
+    normal : (..., 3) unit vector; sign rule: its largest-magnitude component is positive.
+    offset : (...,) signed offset.
+    center, radius : optional disk patch (centre on the plane, radius) covering the
+        inliers; used by ``distance`` and ``to_mesh``. ``None`` means unbounded.
+    """
+
+    normal: np.ndarray
+    offset: np.ndarray
+    center: np.ndarray | None = None
+    radius: np.ndarray | None = None
+
+    name: ClassVar[str] = "plane"
+    sample_size: ClassVar[int] = 3
+    num_params: ClassVar[int] = 4
+    field_specs: ClassVar = {
+        "normal": ((3,), _INVARIANT),
+        "offset": ((), _INVARIANT),  # handled in rescaled()
+        "center": ((3,), _POINT),
+        "radius": ((), _LENGTH),
+    }
+
+    @staticmethod
+    def estimate(sample, support):
+        normal, valid, _ = g.triangle(sample[0], sample[1], sample[2])
+        return jnp.concatenate([normal, -jnp.dot(normal, sample[0])[None]]), valid
+
+    @staticmethod
+    def theta_residual(theta, p, xp):
+        return theta[0] * p[0] + theta[1] * p[1] + theta[2] * p[2] + theta[3]
+
+    @staticmethod
+    def canonicalize(theta):
+        normal, length = g.safe_normalize(theta[:3])
+        return jnp.concatenate([normal, theta[3:] / jnp.where(length > 0, length, 1.0)])
+
+    @classmethod
+    def from_theta(cls, theta, points, inliers, threshold):
+        normal = g.sign_canonical(theta[:3])
+        offset = theta[3] * (1.0 if normal @ theta[:3] > 0 else -1.0)
+        on_plane = points[inliers] - np.outer(points[inliers] @ normal + offset, normal)
+        center = on_plane.mean(axis=0)
+        radius = np.linalg.norm(on_plane - center, axis=1).max()
+        return cls(normal, np.float64(offset), center, np.float64(radius))
+
+    def theta(self):
+        return np.concatenate([self._array("normal"), [float(self.offset)]])
+
+    def rescaled(self, scale, shift):
+        out = super().rescaled(scale, shift)
+        offset = self._array("offset") * scale - self._array("normal") @ np.asarray(shift)
+        return type(out)(out.normal, offset, out.center, out.radius)
+
+    def sample(self, count, rng):
+        """(count, 3) points uniform on the disk patch and their normals (count, 3)."""
+        radius = np.sqrt(rng.uniform(size=count)) * self.radius
+        angle = rng.uniform(0, 2 * np.pi, count)
+        rot = g.frame(self.normal)
+        local = np.stack([radius * np.cos(angle), radius * np.sin(angle), np.zeros(count)], 1)
+        return local @ rot.T + self.center, np.tile(rot[:, 2], (count, 1))
+
+    def distance(self, points):
+        points = as_points(points)
+        height = self.residual(points)
+        if self.radius is None:
+            return np.abs(height)
+        in_plane = points - np.outer(height, self.normal) - self.center
+        spill = np.maximum(np.linalg.norm(in_plane, axis=1) - self.radius, 0.0)
+        return np.hypot(height, spill)
+
+    def to_mesh(self, sections: int = 64):
+        if self.radius is None:
+            raise ValueError("an unbounded plane has no mesh; fit it to get a bounded patch")
+        matrix = g.transform(g.frame(self.normal), self.center)
+        return _disk(float(self.radius), sections, matrix)
+
+
+def _disk(radius, sections, matrix):
+    """A flat triangle fan of the given radius in the local z = 0 plane."""
+    angles = np.linspace(0.0, 2 * np.pi, sections, endpoint=False)
+    rim = np.stack([radius * np.cos(angles), radius * np.sin(angles), np.zeros(sections)], 1)
+    vertices = np.vstack([[0.0, 0.0, 0.0], rim])
+    faces = np.stack([np.zeros(sections, int), 1 + np.arange(sections),
+                      1 + (np.arange(sections) + 1) % sections], 1)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    mesh.apply_transform(matrix)
+    return mesh

@@ -1,0 +1,73 @@
+"""Sphere: |p - center| = radius. theta = (cx, cy, cz, radius); four points per sample."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from . import _geometry as g
+from ._base import _LENGTH, _POINT, Model, register
+
+
+@register
+class Sphere(Model):
+    """Sphere.
+
+    center : (..., 3).
+    radius : (...,) positive.
+    """
+
+    center: np.ndarray
+    radius: np.ndarray
+
+    name: ClassVar[str] = "sphere"
+    sample_size: ClassVar[int] = 4
+    num_params: ClassVar[int] = 4
+    field_specs: ClassVar = {"center": ((3,), _POINT), "radius": ((), _LENGTH)}
+
+    @staticmethod
+    def estimate(sample, support):
+        # The linear system 2 (p_i - p_1) . x = |p_i - p_1|^2 (x = centre - p_1), solved by
+        # Cramer's rule so a singular sample gives a flag, not a NaN.
+        q = sample[1:] - sample[0]
+        c34, c42, c23 = jnp.cross(q[1], q[2]), jnp.cross(q[2], q[0]), jnp.cross(q[0], q[1])
+        det = jnp.dot(q[0], c34)
+        lengths = g.safe_norm(q)
+        valid = (jnp.abs(det) > g.SIN_TOL * jnp.prod(lengths)) & (jnp.min(lengths) > g.LEN_TOL)
+        sq = jnp.sum(q * q, axis=1)
+        x = (sq[0] * c34 + sq[1] * c42 + sq[2] * c23) / (2.0 * jnp.where(valid, det, 1.0))
+        radius = g.safe_norm(x)
+        return jnp.concatenate([sample[0] + x, radius[None]]), valid & (radius < g.MAX_EXTENT)
+
+    @staticmethod
+    def theta_residual(theta, p, xp):
+        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
+        return xp.sqrt(dx * dx + dy * dy + dz * dz) - theta[3]
+
+    @staticmethod
+    def canonicalize(theta):
+        return theta.at[3].set(jnp.abs(theta[3]))
+
+    @classmethod
+    def from_theta(cls, theta, points, inliers, threshold):
+        return cls(np.asarray(theta[:3], np.float64), np.float64(abs(theta[3])))
+
+    def theta(self):
+        return np.concatenate([self._array("center"), [float(self.radius)]])
+
+    def sample(self, count, rng):
+        """(count, 3) points uniform on the sphere and their outward normals (count, 3)."""
+        normals = rng.normal(size=(count, 3))
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return self.center + self.radius * normals, normals
+
+    def distance(self, points):
+        return np.abs(self.residual(points))
+
+    def to_mesh(self, subdivisions: int = 3):
+        mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=float(self.radius))
+        mesh.apply_translation(self._array("center"))
+        return mesh
