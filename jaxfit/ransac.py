@@ -46,7 +46,8 @@ class FitResult:
     """Outcome of ``jaxfit.fit``.
 
     model : the fitted, bounded primitive (in the input's coordinates).
-    inliers : (N,) bool, points within ``threshold`` of ``model.residual``.
+    inliers : (N,) bool, points within ``threshold`` of the bounded model
+        (``model.distance``).
     num_inliers : int.
     cost : MSAC cost sum(min(e^2, threshold^2)) of the final model over all points.
     num_hypotheses : hypotheses drawn and scored.
@@ -110,7 +111,7 @@ def score(cls: type[Model], thetas, valid, points, n_valid, threshold):
         r = cls.theta_residual(theta_t, (chunk[:, 0:1], chunk[:, 1:2], chunk[:, 2:3]), jnp)
         r2 = r * r  # (C, H)
         cost = cost + jnp.sum(jnp.where(live, jnp.minimum(r2, t2), 0.0), axis=0)
-        count = count + jnp.sum(live & (r2 < t2), axis=0)
+        count = count + jnp.sum(live & (r2 < t2), axis=0, dtype=jnp.int32)
         return (cost, count), None
 
     zero = jnp.zeros(thetas.shape[0], points.dtype)
@@ -295,9 +296,10 @@ def fit(
         )
     model = _bounded(cls, np.asarray(best_theta, np.float64), unit, threshold / scale)
     model = model.rescaled(scale, center)
-    residual = model.residual(cloud)
-    inliers = np.abs(residual) < threshold
-    cost = float(np.sum(np.minimum(residual**2, threshold**2)))
+    # Final inliers are judged against the bounded primitive the user gets back.
+    distance = model.distance(cloud)
+    inliers = distance < threshold
+    cost = float(np.sum(np.minimum(distance**2, threshold**2)))
     return FitResult(model, inliers, int(inliers.sum()), cost, drawn, status, threshold)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import trimesh
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+from ._base import _INVARIANT, _LENGTH, _POINT, Model, register
 
 
 @register
@@ -21,8 +21,8 @@ class Plane(Model):
 
     normal : (..., 3) unit vector; sign rule: its largest-magnitude component is positive.
     offset : (...,) signed offset.
-    center, radius : optional disk patch (centre on the plane, radius) covering the
-        inliers; used by ``distance`` and ``to_mesh``. ``None`` means unbounded.
+    center, radius : optional disk patch (centre on the plane, radius) around the
+        inliers, for ``to_mesh``. ``None`` means no patch.
     """
 
     normal: np.ndarray
@@ -59,8 +59,12 @@ class Plane(Model):
         normal = g.sign_canonical(theta[:3])
         offset = theta[3] * (1.0 if normal @ theta[:3] > 0 else -1.0)
         on_plane = points[inliers] - np.outer(points[inliers] @ normal + offset, normal)
-        center = on_plane.mean(axis=0)
-        radius = np.linalg.norm(on_plane - center, axis=1).max()
+        # The patch: around the inliers' median, out to where they thin out (strays in
+        # the plane's slab far from the patch are sparse and are left outside).
+        center = np.median(on_plane, axis=0)
+        _, radius = g.main_interval(np.linalg.norm(on_plane - center, axis=1),
+                                    g.GAP_THRESHOLDS * threshold)
+        center = on_plane[np.linalg.norm(on_plane - center, axis=1) <= radius].mean(axis=0)
         return cls(normal, np.float64(offset), center, np.float64(radius))
 
     def theta(self):
@@ -80,13 +84,9 @@ class Plane(Model):
         return local @ rot.T + self.center, np.tile(rot[:, 2], (count, 1))
 
     def distance(self, points):
-        points = as_points(points)
-        height = self.residual(points)
-        if self.radius is None:
-            return np.abs(height)
-        in_plane = points - np.outer(height, self.normal) - self.center
-        spill = np.maximum(np.linalg.norm(in_plane, axis=1) - self.radius, 0.0)
-        return np.hypot(height, spill)
+        """Distance to the plane. A plane counts as unbounded here (its inliers may cover
+        any outline); the disk patch only gives ``to_mesh`` a size."""
+        return np.abs(self.residual(points))
 
     def to_mesh(self, sections: int = 64):
         if self.radius is None:
