@@ -65,7 +65,8 @@ def normals_for(normals, points: np.ndarray):
 
 def positive(value, name: str, *, integer: bool = False):
     kind = numbers.Integral if integer else numbers.Real
-    if isinstance(value, bool) or not isinstance(value, kind) or not np.isfinite(value) or value <= 0:
+    wrong_type = isinstance(value, bool) or not isinstance(value, kind)
+    if wrong_type or not np.isfinite(value) or value <= 0:
         what = "a positive integer" if integer else "a positive finite number"
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return int(value) if integer else float(value)

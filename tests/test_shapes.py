@@ -1,6 +1,8 @@
 """Laws every primitive obeys: exact estimation from clean minimal samples, zero
 residual on the surface, masked degenerate samples, serialisation and export."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -47,8 +49,9 @@ def test_clean_minimal_sample_is_reestimated_exactly(name, rng):
         sample = clean_sample(model, rng)
         support = model.sample(1024, rng)[0]
         center, scale = ransac._normalise(support)  # the box's histogram expects the unit ball
+        unit_sample, unit_support = (sample - center) / scale, (support - center) / scale
         thetas, valid = ransac.estimate_batch(
-            cls, jnp.asarray((sample - center) / scale)[None], jnp.asarray((support - center) / scale)
+            cls, jnp.asarray(unit_sample)[None], jnp.asarray(unit_support)
         )
         theta = np.asarray(thetas[0], np.float64)
         assert bool(valid[0])
@@ -61,8 +64,8 @@ def test_clean_minimal_sample_is_reestimated_exactly(name, rng):
         if isinstance(model, Cylinder | Cone):
             axis = theta[3:6]
             assert abs(abs(axis @ model.axis) - 1) < 1e-6
-            assert np.isclose(theta[6], unit_model.radius if name == "cylinder" else model.half_angle,
-                              rtol=1e-4)
+            size = unit_model.radius if name == "cylinder" else model.half_angle
+            assert np.isclose(theta[6], size, rtol=1e-4)
         if isinstance(model, Cone):
             assert np.allclose(theta[:3], unit_model.apex, atol=1e-4)
             assert theta[3:6] @ model.axis > 0  # points into the cone
@@ -146,8 +149,8 @@ def test_models_are_pytrees():
     assert len(leaves) == 2
     doubled = jax.tree_util.tree_map(lambda x: x * 2, sphere)
     assert float(doubled.radius) == 4.0
-    with pytest.raises(Exception):
-        sphere.radius = 3.0  # frozen
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        sphere.radius = 3.0
 
 
 def test_from_dict_rejects_bad_input():

@@ -117,7 +117,7 @@ def main_interval(values, gap):
     dense = np.r_[False, counts >= 0.2 * counts.max(), False]
     starts = np.flatnonzero(~dense[:-1] & dense[1:])
     ends = np.flatnonzero(dense[:-1] & ~dense[1:])
-    totals = [counts[a:b].sum() for a, b in zip(starts, ends)]
+    totals = [counts[a:b].sum() for a, b in zip(starts, ends, strict=True)]
     a, b = starts[int(np.argmax(totals))], ends[int(np.argmax(totals))]
     inside = v[(which >= a) & (which < b)]
     return inside.min(), inside.max()

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import trimesh
@@ -105,7 +104,8 @@ class Box(Model):
             if np.isnan(far[i]):
                 # No clear peak (the far face is hidden or too noisy): the other faces'
                 # inliers still show how far the box reaches along n_i.
-                lo, hi = g.main_interval(proj[inliers & (face != i), i], g.GAP_THRESHOLDS * threshold)
+                others = proj[inliers & (face != i), i]
+                lo, hi = g.main_interval(others, g.GAP_THRESHOLDS * threshold)
                 far[i] = hi if hi - near[i] > near[i] - lo else lo
         rotation = g.sign_canonical(normals[:2])
         rotation = np.stack([rotation[0], rotation[1], np.cross(rotation[0], rotation[1])], 1)

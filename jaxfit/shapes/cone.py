@@ -102,7 +102,8 @@ class Cone(Model):
         angle = rng.uniform(0, 2 * np.pi, count)
         radial = np.stack([np.cos(angle), np.sin(angle), np.zeros(count)], 1) @ rot.T
         t = np.sqrt(rng.uniform(size=count)) * self.height  # area grows with t
-        points = self.apex + np.outer(t, self.axis) + (t * np.tan(self.half_angle))[:, None] * radial
+        rim = (t * np.tan(self.half_angle))[:, None] * radial
+        points = self.apex + np.outer(t, self.axis) + rim
         normals = np.cos(self.half_angle) * radial - np.sin(self.half_angle) * self.axis
         return points, normals
 

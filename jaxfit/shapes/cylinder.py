@@ -88,5 +88,6 @@ class Cylinder(Model):
     def to_mesh(self, sections: int = 64):
         matrix = g.transform(g.frame(self.axis), self.center)
         return trimesh.creation.cylinder(
-            radius=float(self.radius), height=float(self.height), sections=sections, transform=matrix
+            radius=float(self.radius), height=float(self.height), sections=sections,
+            transform=matrix,
         )
