@@ -163,8 +163,10 @@ def _load_text(path: Path) -> np.ndarray:
         for num, line in enumerate(text.splitlines(), start=1)
         if line.strip() and not line.lstrip().startswith("#")
     ]
+    # A header is only recognised by having no number in its first three fields, so a data
+    # line with one bad value is reported rather than silently dropped as a "header".
     head = re.split(r"[,\s]+", rows[0][1]) if rows else []
-    if (len(head) == 1 and head[0].isdigit()) or (head and not _all_floats(head[:3])):
+    if (len(head) == 1 and head[0].isdigit()) or (head and not any(map(_is_float, head[:3]))):
         rows = rows[1:]  # a header line, or the point count that starts a .pts file
     if not rows:
         raise LoadError(f"no points found in {path} (empty file or only a header?)")
@@ -172,15 +174,17 @@ def _load_text(path: Path) -> np.ndarray:
     # One delimiter per file, taken from the first data line, so that a comma-less line
     # in a CSV is reported as a column error rather than being parsed some other way.
     sep = "," if "," in rows[0][1] else None
-    fields = [[f.strip() for f in line.split(sep)] for _, line in rows]
-    for (num, line), row in zip(rows, fields, strict=True):
+    points = np.empty((len(rows), 3))
+    for i, (num, line) in enumerate(rows):
+        row = line.split(sep)
         if len(row) < 3:
             raise LoadError(
                 f"line {num} of {path} has {len(row)} column(s); expected at least 3 (x, y, z)"
             )
-        if not _all_floats(row[:3]):
-            raise LoadError(f"non-numeric value on line {num} of {path}: {line!r}")
-    points = np.array([row[:3] for row in fields], dtype=np.float64)
+        try:
+            points[i] = [float(v) for v in row[:3]]
+        except ValueError:
+            raise LoadError(f"non-numeric value on line {num} of {path}: {line!r}") from None
 
     bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
     if bad.size:
@@ -191,10 +195,9 @@ def _load_text(path: Path) -> np.ndarray:
     return points
 
 
-def _all_floats(fields: list[str]) -> bool:
+def _is_float(text: str) -> bool:
     try:
-        for f in fields:
-            float(f)
+        float(text)
     except ValueError:
         return False
     return True

@@ -1,0 +1,127 @@
+"""Point-hypothesis evaluations per second: jaxfit's kernel against jaxfit.reference.
+
+For each primitive and N in {1e3, 1e4, 1e5}, the same H hypotheses are sampled,
+estimated and MSAC-scored three ways, side by side in one run:
+- jaxfit: one call of the jitted kernel (sample -> vmap'd estimate -> chunked scoring),
+  warm (compiled beforehand), median of several calls;
+- reference, vectorised: NumPy estimates, then all H hypotheses scored at once in blocks;
+- reference, one at a time: the thesis's loop, estimate then score per hypothesis
+  (timed on a subset of the hypotheses and reported per evaluation).
+
+Run: ``python -m benchmarks.throughput [--quick]``. Writes
+``benchmarks/results/throughput.json`` and ``throughput.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfit import ransac, reference
+from jaxfit.shapes import REGISTRY
+from jaxfit.synthetic import demo_cloud
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _seconds(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int = 0) -> dict:
+    cls = REGISTRY[name]
+    points, _, _ = demo_cloud(name, count=n, seed=seed)
+    center, scale = ransac._normalise(points)
+    unit = (points - center) / scale
+    threshold = 0.01
+    padded = ransac._padded(unit, np.float32)
+    key = jax.random.key(seed)
+    thr = jnp.float32(threshold)
+
+    def kernel():
+        jax.block_until_ready(ransac.batch_best(cls, hypotheses, padded, n, key, thr))
+
+    kernel()  # compile
+    t_jax = _seconds(kernel, 5)
+
+    rng = np.random.default_rng(seed)
+    samples = unit[rng.integers(0, n, (hypotheses, cls.sample_size))]
+    support = unit[rng.integers(0, n, ransac.SUPPORT)]
+
+    def vectorised():
+        thetas, valid = reference.estimate_batch(name, samples, support)
+        reference.score_batch(name, thetas, valid, unit, threshold)
+
+    t_vec = _seconds(vectorised, 1)
+
+    def one_at_a_time():
+        for sample in samples[:loop_hypotheses]:
+            theta, valid = reference.estimate(name, sample, support)
+            if valid:
+                reference.msac_cost(name, theta, unit, threshold)
+
+    t_loop = _seconds(one_at_a_time, 1) * hypotheses / loop_hypotheses
+    evals = hypotheses * n
+    return {
+        "shape": name, "N": n, "H": hypotheses,
+        "jaxfit_evals_per_s": evals / t_jax,
+        "numpy_vectorised_evals_per_s": evals / t_vec,
+        "numpy_loop_evals_per_s": evals / t_loop,
+        "speedup_vs_vectorised": t_vec / t_jax,
+        "speedup_vs_loop": t_loop / t_jax,
+    }
+
+
+def table(rows) -> str:
+    lines = [
+        "| shape | N | H | jaxfit (M eval/s) | NumPy vectorised | NumPy one-at-a-time "
+        "| × vectorised | × one-at-a-time |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['shape']} | {r['N']:,} | {r['H']} | {r['jaxfit_evals_per_s'] / 1e6:,.0f} "
+            f"| {r['numpy_vectorised_evals_per_s'] / 1e6:,.0f} "
+            f"| {r['numpy_loop_evals_per_s'] / 1e6:,.1f} "
+            f"| {r['speedup_vs_vectorised']:.1f} | {r['speedup_vs_loop']:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="N up to 1e4 only")
+    parser.add_argument("--hypotheses", type=int, default=1024)
+    args = parser.parse_args(argv)
+    sizes = [1_000, 10_000] if args.quick else [1_000, 10_000, 100_000]
+    rows = []
+    for name in ["plane", "sphere", "cylinder", "cone", "box"]:
+        for n in sizes:
+            loop = max(16, min(args.hypotheses, 2_000_000 // n))
+            row = measure(name, n, args.hypotheses, loop)
+            rows.append(row)
+            print(table([row]).splitlines()[-1], flush=True)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    meta = {"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
+            "devices": [str(d) for d in jax.devices()], "cpus": __import__("os").cpu_count()}
+    (RESULTS / "throughput.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+    md = table(rows)
+    (RESULTS / "throughput.md").write_text(md + "\n")
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
