@@ -153,3 +153,23 @@ def test_threshold_default_follows_the_clouds_scale():
 def test_shape_may_be_given_as_class():
     points, _, _ = demo_cloud("sphere", seed=3)
     assert isinstance(jaxfit.fit(points, jaxfit.Sphere).model, jaxfit.Sphere)
+
+
+def test_real_scan_of_a_soup_can_is_a_cylinder(data_dir):
+    from jaxfit.io import load_points
+
+    points = load_points(data_dir / "ycb" / "005_tomato_soup_can_textured.gltf", num_points=2000)
+    model = jaxfit.fit(points, "cylinder", key=0).model
+    # YCB's specification: diameter 66 mm, height 101 mm; the scan's axis is +Y.
+    assert abs(model.radius / 0.033 - 1) < 0.03
+    assert abs(model.height / 0.101 - 1) < 0.05
+    assert axis_angle_deg(model.axis, [0, 1, 0]) < 2
+
+
+def test_real_sphere_mesh(data_dir):
+    from jaxfit.io import load_points
+
+    points = load_points(data_dir / "misc" / "pyvista_examples_sphere.ply", num_points=2000)
+    model = jaxfit.fit(points, "sphere", key=0).model
+    # Its vertices lie 126.4-127.6 from the centre; the flat faces sit slightly inside.
+    assert 125.5 < model.radius < 127.6
