@@ -116,7 +116,7 @@ def score(cls: type[Model], thetas, valid, points, n_valid, threshold):
 
     zero = jnp.zeros(thetas.shape[0], points.dtype)
     (cost, count), _ = jax.lax.scan(step, (zero, zero.astype(jnp.int32)), (chunks, starts))
-    return jnp.where(valid, cost, jnp.inf), count
+    return jnp.where(valid, cost, jnp.inf), jnp.where(valid, count, 0)
 
 
 def estimate_batch(cls: type[Model], samples, support):

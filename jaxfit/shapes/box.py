@@ -71,8 +71,9 @@ class Box(Model):
     def estimate(sample, support):
         n1, valid, _ = g.triangle(sample[0], sample[1], sample[2])
         h4 = jnp.dot(sample[3] - sample[0], n1)
-        foot4 = sample[3] - h4 * n1  # p4 projected on the first face
-        n2, length = g.safe_normalize(jnp.cross(sample[3] - foot4, sample[4] - sample[3]))
+        # (p4 - p4') x (p5 - p4) with p4 - p4' = h4 n1 written out: subtracting p4's
+        # projection from p4 would cancel digits in float32 when p4 is near the face.
+        n2, length = g.safe_normalize(jnp.cross(h4 * n1, sample[4] - sample[3]))
         valid &= length > g.SIN_TOL * jnp.abs(h4) * g.safe_norm(sample[4] - sample[3])
         valid &= jnp.abs(h4) > g.LEN_TOL
         normals = jnp.stack([n1, n2, jnp.cross(n1, n2)])
@@ -146,7 +147,8 @@ def _opposite_face(proj, near, threshold):
         return np.nan
     edges = np.arange(proj.min(), proj.max() + 2 * threshold, threshold)
     counts, _ = np.histogram(proj, bins=edges)
-    counts = np.convolve(counts, np.ones(_SUM_BINS), mode="same")
+    # "full" then trimmed: "same" would return the kernel's length for tiny histograms.
+    counts = np.convolve(counts, np.ones(_SUM_BINS))[_SUM_BINS // 2 : -(_SUM_BINS // 2)]
     padded = np.pad(counts, _MEDIAN_BINS // 2, mode="edge")
     smooth = np.median(np.lib.stride_tricks.sliding_window_view(padded, _MEDIAN_BINS), axis=1)
     centres = 0.5 * (edges[:-1] + edges[1:])

@@ -19,7 +19,7 @@ from . import _geometry as g
 from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
 
 # Half-angles this close to 0 or 90 degrees are a cylinder or a plane, not a cone.
-_MIN_ANGLE = 1e-3
+MIN_ANGLE = 1e-3
 
 
 @register
@@ -60,7 +60,7 @@ class Cone(Model):
         valid &= (rho4 > g.LEN_TOL) & (jnp.abs(h4) > g.LEN_TOL) & (jnp.abs(slope) > g.LEN_TOL)
         h_apex = -r * h4 / jnp.where(valid, slope, 1.0)
         half_angle = jnp.arctan2(jnp.abs(slope), jnp.abs(h4))
-        valid &= (half_angle > _MIN_ANGLE) & (half_angle < jnp.pi / 2 - _MIN_ANGLE)
+        valid &= (half_angle > MIN_ANGLE) & (half_angle < jnp.pi / 2 - MIN_ANGLE)
         valid &= jnp.abs(h_apex) < g.MAX_EXTENT
         # The circle's centre lies inside the cone, so the axis points from apex to c0.
         axis = jnp.where(h_apex < 0, n, -n)
