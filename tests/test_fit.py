@@ -102,6 +102,9 @@ def test_status_reports_why_the_loop_stopped():
     assert capped.status is Status.MAX_HYPOTHESES and capped.num_hypotheses == 2048
     stalled = jaxfit.fit(demo_cloud("cone", seed=2)[0], "cone", max_stall=1024)
     assert stalled.status is Status.STALLED and stalled.num_hypotheses < 16384
+    fixed = jaxfit.fit(demo_cloud("sphere", seed=2)[0], "sphere", min_hypotheses=3072,
+                       max_hypotheses=3072)
+    assert fixed.num_hypotheses == 3072 and fixed.status is Status.CONVERGED
 
 
 def test_far_from_origin_fits_as_well_in_float32():

@@ -31,6 +31,7 @@ GOOD = np.random.default_rng(0).normal(size=(50, 3))
         (GOOD, {"max_hypotheses": 0}, "max_hypotheses"),
         (GOOD, {"batch_size": 2.5}, "batch_size"),
         (GOOD, {"max_stall": -3}, "max_stall"),
+        (GOOD, {"min_hypotheses": -1}, "min_hypotheses"),
         (GOOD, {"normals": GOOD[:10]}, "normals must match"),
         (GOOD, {"normals": np.zeros_like(GOOD)}, "zero vectors"),
         (GOOD, {"normals": np.full_like(GOOD, np.nan)}, "normals contain"),
