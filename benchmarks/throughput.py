@@ -9,7 +9,7 @@ estimated and MSAC-scored three ways, side by side in one run:
   (timed on a subset of the hypotheses and reported per evaluation).
 
 Run: ``python -m benchmarks.throughput [--quick]``. Writes
-``benchmarks/results/throughput.json`` and ``throughput.md``.
+``benchmarks/results/throughput.json``, ``throughput.md`` and ``throughput.png``.
 """
 
 from __future__ import annotations
@@ -115,6 +115,36 @@ def table(rows) -> str:
     return "\n".join(lines)
 
 
+def plot(rows, path):
+    """Evaluations per second against N, one panel per primitive, log-log."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib not installed (pip install -e '.[bench]'): no plot")
+        return
+    shapes = list(dict.fromkeys(r["shape"] for r in rows))
+    fig, axes = plt.subplots(1, len(shapes), figsize=(3.2 * len(shapes), 3.2), sharey=True)
+    series = [("jaxfit_evals_per_s", "jaxfit kernel"),
+              ("numpy_vectorised_evals_per_s", "NumPy vectorised"),
+              ("numpy_loop_evals_per_s", "NumPy one at a time")]
+    for ax, shape in zip(axes, shapes, strict=True):
+        mine = [r for r in rows if r["shape"] == shape]
+        for field, label in series:
+            ax.loglog([r["N"] for r in mine], [r[field] for r in mine], "o-", label=label)
+        ax.set_title(shape)
+        ax.set_xlabel("points N")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("point-hypothesis evaluations / s")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"MSAC scoring throughput, H = {rows[0]['H']} hypotheses, same samples")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N up to 1e4 only")
@@ -135,6 +165,7 @@ def main(argv=None):
     md = table(rows)
     (RESULTS / "throughput.md").write_text(md + "\n")
     print(md)
+    plot(rows, RESULTS / "throughput.png")
 
 
 if __name__ == "__main__":
