@@ -10,15 +10,20 @@ import time
 import numpy as np
 
 
-def _print_result(result, seconds: float, out=sys.stdout):
-    model = result.model.to_dict()
-    print(f"{model.pop('type')}:", file=out)
-    for name, value in model.items():
-        print(f"  {name:<11} {np.array2string(np.asarray(value), precision=6)}", file=out)
+def _print_model(model, title):
+    params = model.to_dict()
+    print(f"{title} {params.pop('type')}:")
+    for name, value in params.items():
+        text = np.array2string(np.asarray(value), precision=6, prefix=" " * 14)
+        print(f"  {name:<11} {text}")
+
+
+def _print_result(result, seconds: float):
+    _print_model(result.model, "fitted")
     print(f"inliers     {result.num_inliers} of {result.inliers.size} "
-          f"(threshold {result.threshold:.6g})", file=out)
+          f"(threshold {result.threshold:.6g})")
     print(f"hypotheses  {result.num_hypotheses} ({result.status.value}), "
-          f"{seconds:.3f} s including compilation", file=out)
+          f"{seconds:.3f} s including compilation")
 
 
 def _fit_and_report(points, args):
@@ -55,7 +60,7 @@ def _cmd_demo(args):
     points, truth, _ = demo_cloud(args.shape, seed=args.seed)
     print(f"demo: {len(points)} points, half of them uniform outliers, around a known "
           f"{args.shape}")
-    print("truth:", json.dumps(truth.to_dict()))
+    _print_model(truth, "true")
     _fit_and_report(points, args)
 
 

@@ -179,9 +179,10 @@ def batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshol
 batch_best = _jit_tuned(batch_best, static_argnames=("cls", "batch_size"))
 
 
-def _msac(cls, theta, p, live, threshold):
-    r = cls.theta_residual(theta, p, jnp)
-    return jnp.sum(jnp.where(live, jnp.minimum(r * r, threshold * threshold), 0.0))
+def _msac(cls, theta, points, n_valid, threshold):
+    """MSAC cost and inlier count of one hypothesis theta (P,)."""
+    cost, count = score(cls, theta[None], jnp.ones(1, bool), points, n_valid, threshold)
+    return cost[0], count[0]
 
 
 @partial(jax.jit, static_argnames=("cls", "max_rounds", "steps"))
@@ -217,7 +218,7 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
         weight = (live & (jnp.abs(r) < threshold)).astype(th.dtype)
         init = (th, jnp.asarray(1e-3, th.dtype), jnp.sum((r * weight) ** 2), weight)
         candidate = jax.lax.fori_loop(0, steps, lm_step, init)[0]
-        new_cost = _msac(cls, candidate, p, live, threshold)
+        new_cost = _msac(cls, candidate, points, n_valid, threshold)[0]
         better = new_cost < cost
         return (jnp.where(better, candidate, th), jnp.where(better, new_cost, cost), better,
                 rounds + 1)
@@ -225,10 +226,9 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
     def going(carry):
         return carry[2] & (carry[3] < max_rounds)
 
-    cost = _msac(cls, theta, p, live, threshold)
-    theta, cost, _, _ = jax.lax.while_loop(going, lo_round, (theta, cost, True, 0))
-    count = jnp.sum(live & (jnp.abs(cls.theta_residual(theta, p, jnp)) < threshold))
-    return theta, cost, count
+    cost = _msac(cls, theta, points, n_valid, threshold)[0]
+    theta, _, _, _ = jax.lax.while_loop(going, lo_round, (theta, cost, True, 0))
+    return (theta, *_msac(cls, theta, points, n_valid, threshold))
 
 
 # ----- host side ----------------------------------------------------------------------
