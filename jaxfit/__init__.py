@@ -1,11 +1,11 @@
 """jaxfit: batched RANSAC/MSAC fitting of primitive shapes to 3-D point clouds, in JAX."""
 
 from ._checks import FitError
-from .ransac import FitResult, Status, fit
+from .ransac import FitResult, Status, fit, fit_batch
 from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
 
 __all__ = [
-    "fit", "FitResult", "Status", "FitError",
+    "fit", "fit_batch", "FitResult", "Status", "FitError",
     "Model", "Plane", "Sphere", "Cylinder", "Cone", "Box",
 ]
 __version__ = "0.1.0"

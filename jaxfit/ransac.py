@@ -15,6 +15,7 @@ import dataclasses
 import enum
 import functools
 import math
+import numbers
 import warnings
 from functools import partial
 
@@ -163,7 +164,7 @@ def estimate_batch(cls: type[Model], samples, support):
     return jax.vmap(cls.estimate, in_axes=(0, None))(samples, support)
 
 
-def batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold):
+def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold):
     """The one kernel: H hypotheses from ``key`` scored on padded points (B, 3).
     Returns the best (theta (P,), cost, inlier count) and the number of valid samples."""
     key_sample, key_support = jax.random.split(key)
@@ -176,7 +177,7 @@ def batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshol
     return thetas[best], costs[best], counts[best], jnp.sum(valid)
 
 
-batch_best = _jit_tuned(batch_best, static_argnames=("cls", "batch_size"))
+batch_best = _jit_tuned(_batch_best, static_argnames=("cls", "batch_size"))
 
 
 def _msac(cls, theta, points, n_valid, threshold):
@@ -243,11 +244,49 @@ def _normalise(points: np.ndarray):
     return center, scale
 
 
-def _padded(unit_points: np.ndarray, dtype):
+def _padded(unit_points: np.ndarray, dtype, size: int | None = None):
     n = unit_points.shape[0]
-    out = np.zeros((bucket_size(n), 3), dtype=dtype)
+    out = np.zeros((size or bucket_size(n), 3), dtype=dtype)
     out[:n] = unit_points
     return jnp.asarray(out)
+
+
+def _many(fn):
+    """fn vmapped over clouds: (cls, static, *per-cloud arrays) -> stacked outputs."""
+
+    def many(cls, static, *arrays):
+        return jax.vmap(lambda *a: fn(cls, static, *a))(*arrays)
+
+    return many
+
+
+_batch_best_many = _jit_tuned(_many(_batch_best), static_argnames=("cls", "static"))
+_refine_many = jax.jit(_many(lambda cls, _, *a: refine_theta(cls, *a)),
+                       static_argnames=("cls", "static"))
+
+
+@dataclasses.dataclass
+class _Cloud:
+    """One validated cloud, in the normalised frame the kernels see."""
+
+    points: np.ndarray  # (N, 3) float64, as given
+    center: np.ndarray
+    scale: float
+    threshold: float  # in the cloud's units
+
+    @property
+    def unit(self):
+        return (self.points - self.center) / self.scale
+
+
+def _prepare(points, cls, normals, threshold) -> _Cloud:
+    cloud = _checks.points_for(points, cls)
+    _checks.normals_for(normals, cloud)
+    center, scale = _normalise(cloud)
+    if threshold is None:
+        diagonal = np.linalg.norm(cloud.max(axis=0) - cloud.min(axis=0))
+        threshold = DEFAULT_THRESHOLD_FRACTION * diagonal
+    return _Cloud(cloud, center, scale, _checks.positive(threshold, "threshold"))
 
 
 def fit(
@@ -284,15 +323,73 @@ def fit(
     refine : local optimisation (LO-RANSAC): each new best hypothesis is refitted on its
         inliers by Levenberg-Marquardt, its inliers reclassified, until the MSAC cost
         stops falling; the stopping rule then uses the refined inlier count.
-    key : int seed or JAX PRNG key; batch b uses ``fold_in(key, b)``.
+    key : int seed or JAX PRNG key. ``fit(points, ...)`` equals
+        ``fit_batch([points], ...)[0]``: batch b uses ``fold_in(fold_in(key, 0), b)``.
 
     Returns
     -------
     FitResult
     """
+    return fit_batch(
+        [points], shape, normals=None if normals is None else [normals], thresholds=threshold,
+        confidence=confidence, max_hypotheses=max_hypotheses, batch_size=batch_size,
+        max_stall=max_stall, min_hypotheses=min_hypotheses, refine=refine, key=key,
+    )[0]
+
+
+def fit_batch(
+    clouds,
+    shape,
+    *,
+    normals=None,
+    thresholds=None,
+    confidence: float = 0.99,
+    max_hypotheses: int = 100_000,
+    batch_size: int = 1024,
+    max_stall: int = 20_000,
+    min_hypotheses: int | None = None,
+    refine: bool = True,
+    key=0,
+    skip_failures: bool = False,
+) -> list[FitResult | None]:
+    """Fit one primitive to each of several clouds, all in the same compiled calls.
+
+    The clouds are padded to one point bucket (and their count to a power of two) and
+    each kernel call scores H hypotheses for every cloud at once; each cloud keeps its own
+    stopping state, exactly as ``fit`` would (``fit`` is this with one cloud).
+
+    Parameters
+    ----------
+    clouds : sequence of (N_i, 3) arrays.
+    normals : None or a sequence of (N_i, 3) arrays (validated, unused as in ``fit``).
+    thresholds : None, one float for all clouds, or one per cloud (None entries take
+        each cloud's default).
+    key : cloud i uses ``fold_in(key, i)``.
+    skip_failures : give None for a cloud on which no model can be fitted instead of
+        raising ``FitError``. Invalid input always raises.
+    Other parameters as in ``fit``.
+
+    Returns
+    -------
+    list of FitResult (or None), one per cloud.
+    """
     cls = _checks.model_class(shape)
-    cloud = _checks.points_for(points, cls)
-    _checks.normals_for(normals, cloud)
+    clouds = list(clouds)
+    if not clouds:
+        raise ValueError("clouds is empty: give at least one (N, 3) array")
+    if normals is not None and len(normals) != len(clouds):
+        raise ValueError(f"normals must be one array per cloud ({len(clouds)}), got {len(normals)}")
+    if thresholds is None or isinstance(thresholds, numbers.Real):
+        thresholds = [thresholds] * len(clouds)
+    if len(thresholds) != len(clouds):
+        raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
+    prepared = []
+    for i, points in enumerate(clouds):
+        try:
+            prepared.append(_prepare(points, cls, None if normals is None else normals[i],
+                                     thresholds[i]))
+        except ValueError as err:
+            raise type(err)(f"cloud {i}: {err}" if len(clouds) > 1 else str(err)) from None
     confidence = _checks.probability(confidence, "confidence")
     max_hypotheses = _checks.positive(max_hypotheses, "max_hypotheses", integer=True)
     batch_size = _checks.positive(batch_size, "batch_size", integer=True)
@@ -301,55 +398,89 @@ def fit(
         min_hypotheses = cls.min_hypotheses
     elif not (isinstance(min_hypotheses, int) and min_hypotheses >= 0):
         raise ValueError(f"min_hypotheses must be a non-negative integer, got {min_hypotheses!r}")
-    center, scale = _normalise(cloud)
-    if threshold is None:
-        diagonal = np.linalg.norm(cloud.max(axis=0) - cloud.min(axis=0))
-        threshold = DEFAULT_THRESHOLD_FRACTION * diagonal
-    threshold = _checks.positive(threshold, "threshold")
     key = _checks.prng_key(key)
 
-    dtype = jax.dtypes.canonicalize_dtype(np.float64)  # float32 unless x64 is on
-    unit = (cloud - center) / scale
-    padded = _padded(unit, dtype)
-    n = cloud.shape[0]
-    unit_threshold = jnp.asarray(threshold / scale, dtype)
+    thetas, drawn, status = _search(cls, prepared, key, confidence, max_hypotheses, batch_size,
+                                    max_stall, min_hypotheses, refine)
+    results = []
+    for i, cloud in enumerate(prepared):
+        try:
+            results.append(_result(cls, cloud, thetas[i], drawn[i], status[i]))
+        except _checks.FitError:
+            if not skip_failures:
+                raise
+            results.append(None)
+    return results
 
-    best_theta, best_cost, best_count, best_raw = None, math.inf, 0, math.inf
-    drawn = last_improvement = 0
-    status = Status.MAX_HYPOTHESES
-    while drawn < max_hypotheses:
-        batch_key = jax.random.fold_in(key, drawn // batch_size)
-        theta, cost, count, _ = batch_best(cls, batch_size, padded, n, batch_key, unit_threshold)
-        drawn += batch_size
-        if float(cost) < best_raw:
-            # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones
-            # only, so a rough but right one is not hidden behind a polished wrong one).
-            best_raw = float(cost)
-            if refine:
-                theta, cost, count = refine_theta(cls, theta, padded, n, unit_threshold)
-            if float(cost) < best_cost:
-                best_theta, best_cost, best_count = theta, float(cost), int(count)
-                last_improvement = drawn
-        needed = max(required_hypotheses(best_count / n, cls.sample_size, confidence),
-                     min_hypotheses)
-        if drawn >= needed:
-            status = Status.CONVERGED
-            break
-        if drawn - last_improvement >= max_stall:
-            status = Status.STALLED
-            break
-    if best_theta is None:
+
+def _search(cls, clouds, key, confidence, max_hypotheses, batch_size, max_stall,
+            min_hypotheses, refine):
+    """The host loop over batches for all clouds in lockstep.
+
+    Returns the best theta (C, P) per cloud (NaN where none was valid), hypotheses drawn
+    (C,) and the Status (C,) of each cloud.
+    """
+    count = len(clouds)
+    slots = 1 << (count - 1).bit_length()  # pad the cloud count too: fewer compilations
+    size = bucket_size(max(c.points.shape[0] for c in clouds))
+    dtype = jax.dtypes.canonicalize_dtype(np.float64)  # float32 unless x64 is on
+    order = list(range(count)) + [0] * (slots - count)  # padding slots repeat cloud 0
+    padded = jnp.stack([_padded(clouds[i].unit, dtype, size) for i in order])
+    n = jnp.asarray([clouds[i].points.shape[0] for i in order], jnp.int32)
+    unit_threshold = jnp.asarray([clouds[i].threshold / clouds[i].scale for i in order], dtype)
+    cloud_keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, jnp.arange(slots))
+
+    best_theta = np.full((slots, cls.num_params), np.nan)
+    best_cost, best_raw = np.full(slots, np.inf), np.full(slots, np.inf)
+    best_count = np.zeros(slots)
+    last_improvement = np.zeros(slots, int)
+    drawn = np.zeros(slots, int)
+    status = np.array([Status.MAX_HYPOTHESES] * slots, dtype=object)
+    active = np.arange(slots) < count
+    batch = 0
+    while active.any() and batch * batch_size < max_hypotheses:
+        keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(cloud_keys, batch)
+        theta, cost, found, _ = _batch_best_many(cls, batch_size, padded, n, keys,
+                                                 unit_threshold)
+        batch += 1
+        drawn[active] = batch * batch_size
+        # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
+        # so a rough but right one is not hidden behind a polished wrong one).
+        raw = np.asarray(cost, np.float64)
+        improved = active & (raw < best_raw)
+        best_raw = np.where(improved, raw, best_raw)
+        if refine and improved.any():
+            theta, cost, found = _refine_many(cls, None, theta, padded, n, unit_threshold)
+        cost, found, theta = np.asarray(cost, np.float64), np.asarray(found), np.asarray(theta)
+        better = improved & (cost < best_cost)
+        best_theta[better], best_cost[better] = theta[better], cost[better]
+        best_count[better] = found[better]
+        last_improvement[better] = batch * batch_size
+        for i in np.flatnonzero(active):
+            ratio = best_count[i] / clouds[i].points.shape[0]
+            needed = max(required_hypotheses(ratio, cls.sample_size, confidence), min_hypotheses)
+            if drawn[i] >= needed:
+                status[i], active[i] = Status.CONVERGED, False
+            elif drawn[i] - last_improvement[i] >= max_stall:
+                status[i], active[i] = Status.STALLED, False
+    return best_theta[:count], drawn[:count], status[:count]
+
+
+def _result(cls, cloud: _Cloud, theta, drawn, status) -> FitResult:
+    if not np.all(np.isfinite(theta)):
         raise _checks.FitError(
             f"no valid {cls.name} hypothesis in {drawn} samples: the points are degenerate "
             f"for a {cls.name} (coincident, collinear or coplanar)"
         )
-    model = _bounded(cls, np.asarray(best_theta, np.float64), unit, threshold / scale)
-    model = model.rescaled(scale, center)
+    unit_threshold = cloud.threshold / cloud.scale
+    model = _bounded(cls, np.asarray(theta, np.float64), cloud.unit, unit_threshold)
+    model = model.rescaled(cloud.scale, cloud.center)
     # Final inliers are judged against the bounded primitive the user gets back.
-    distance = model.distance(cloud)
-    inliers = distance < threshold
-    cost = float(np.sum(np.minimum(distance**2, threshold**2)))
-    return FitResult(model, inliers, int(inliers.sum()), cost, drawn, status, threshold)
+    distance = model.distance(cloud.points)
+    inliers = distance < cloud.threshold
+    cost = float(np.sum(np.minimum(distance**2, cloud.threshold**2)))
+    return FitResult(model, inliers, int(inliers.sum()), cost, int(drawn), status,
+                     cloud.threshold)
 
 
 def _bounded(cls, theta, unit, unit_threshold):

@@ -176,3 +176,28 @@ def test_real_sphere_mesh(data_dir):
     model = jaxfit.fit(points, "sphere", key=0).model
     # Its vertices lie 126.4-127.6 from the centre; the flat faces sit slightly inside.
     assert 125.5 < model.radius < 127.6
+
+
+def test_fit_batch_matches_fit_cloud_by_cloud():
+    clouds = [demo_cloud(name, count=count, seed=s)[0]
+              for name, count, s in [("sphere", 2000, 0), ("sphere", 700, 1), ("sphere", 1500, 2)]]
+    batch = jaxfit.fit_batch(clouds, "sphere", key=4)
+    alone = jaxfit.fit(clouds[0], "sphere", key=4)  # cloud 0 uses fold_in(key, 0) in both
+    assert np.allclose(batch[0].model.center, alone.model.center, atol=1e-6)
+    assert np.array_equal(batch[0].inliers, alone.inliers)
+    for points, result in zip(clouds, batch, strict=True):
+        assert result.inliers.shape == (len(points),)
+        assert result.status is Status.CONVERGED
+
+
+def test_fit_batch_errors_name_the_cloud():
+    good = demo_cloud("sphere", seed=0)[0]
+    with pytest.raises(ValueError, match="cloud 1: .*NaN"):
+        jaxfit.fit_batch([good, np.full((10, 3), np.nan)], "sphere")
+    with pytest.raises(ValueError, match="thresholds must be one per cloud"):
+        jaxfit.fit_batch([good, good], "sphere", thresholds=[0.1])
+    line = np.outer(np.linspace(0, 1, 50), [1.0, 2.0, 3.0])
+    results = jaxfit.fit_batch([good, line], "plane", max_hypotheses=1024, skip_failures=True)
+    assert results[0] is not None and results[1] is None
+    with pytest.raises(jaxfit.FitError, match="degenerate"):
+        jaxfit.fit_batch([good, line], "plane", max_hypotheses=1024)
