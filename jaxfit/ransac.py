@@ -251,18 +251,25 @@ def _padded(unit_points: np.ndarray, dtype, size: int | None = None):
     return jnp.asarray(out)
 
 
-def _many(fn):
-    """fn vmapped over clouds: (cls, static, *per-cloud arrays) -> stacked outputs."""
+def _batch_best_many(cls, batch_size, points, n_valid, cloud_keys, threshold, batch):
+    """``batch_best`` for every cloud: points (C, B, 3), n_valid (C,), cloud_keys (C,),
+    threshold (C,); batch b of cloud c uses fold_in(cloud_keys[c], b)."""
 
-    def many(cls, static, *arrays):
-        return jax.vmap(lambda *a: fn(cls, static, *a))(*arrays)
+    def one(p, n, k, t):
+        return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t)
 
-    return many
+    return jax.vmap(one)(points, n_valid, cloud_keys, threshold)
 
 
-_batch_best_many = _jit_tuned(_many(_batch_best), static_argnames=("cls", "static"))
-_refine_many = jax.jit(_many(lambda cls, _, *a: refine_theta(cls, *a)),
-                       static_argnames=("cls", "static"))
+_batch_best_many = _jit_tuned(_batch_best_many, static_argnames=("cls", "batch_size"))
+
+
+_fold_in_each = jax.jit(jax.vmap(jax.random.fold_in, in_axes=(None, 0)))
+
+
+@partial(jax.jit, static_argnames=("cls",))
+def _refine_many(cls, thetas, points, n_valid, threshold):
+    return jax.vmap(partial(refine_theta, cls))(thetas, points, n_valid, threshold)
 
 
 @dataclasses.dataclass
@@ -428,7 +435,7 @@ def _search(cls, clouds, key, confidence, max_hypotheses, batch_size, max_stall,
     padded = jnp.stack([_padded(clouds[i].unit, dtype, size) for i in order])
     n = jnp.asarray([clouds[i].points.shape[0] for i in order], jnp.int32)
     unit_threshold = jnp.asarray([clouds[i].threshold / clouds[i].scale for i in order], dtype)
-    cloud_keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, jnp.arange(slots))
+    cloud_keys = _fold_in_each(key, jnp.arange(slots))
 
     best_theta = np.full((slots, cls.num_params), np.nan)
     best_cost, best_raw = np.full(slots, np.inf), np.full(slots, np.inf)
@@ -439,9 +446,8 @@ def _search(cls, clouds, key, confidence, max_hypotheses, batch_size, max_stall,
     active = np.arange(slots) < count
     batch = 0
     while active.any() and batch * batch_size < max_hypotheses:
-        keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(cloud_keys, batch)
-        theta, cost, found, _ = _batch_best_many(cls, batch_size, padded, n, keys,
-                                                 unit_threshold)
+        theta, cost, found, _ = _batch_best_many(cls, batch_size, padded, n, cloud_keys,
+                                                 unit_threshold, batch)
         batch += 1
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
@@ -450,7 +456,7 @@ def _search(cls, clouds, key, confidence, max_hypotheses, batch_size, max_stall,
         improved = active & (raw < best_raw)
         best_raw = np.where(improved, raw, best_raw)
         if refine and improved.any():
-            theta, cost, found = _refine_many(cls, None, theta, padded, n, unit_threshold)
+            theta, cost, found = _refine_many(cls, theta, padded, n, unit_threshold)
         cost, found, theta = np.asarray(cost, np.float64), np.asarray(found), np.asarray(theta)
         better = improved & (cost < best_cost)
         best_theta[better], best_cost[better] = theta[better], cost[better]
