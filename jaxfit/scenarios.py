@@ -68,7 +68,7 @@ CUBE_GROWTH = 1.5
 _MODEL_STREAM, _CUT_STREAM, _POINT_STREAM = 0, 1, 2
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq=False: == on array fields would be ambiguous
 class Cut:
     """The part of the surface an incomplete scenario deletes: the surface points p with
     ``(p - origin) . direction > 0``, on the whole surface, or for the box only on
@@ -225,33 +225,33 @@ def random_cut(model: Model, rng) -> Cut:
     if isinstance(model, Box):
         return _box_strip(model, rng)
     # A plane containing the axis (cylinder, cone) or a line through the patch centre
-    # (plane): a random direction orthogonal to the axis / normal.
-    axis, origin = {
-        Cylinder: lambda m: (m.axis, m.center),
-        Cone: lambda m: (m.axis, m.apex),
-        Plane: lambda m: (m.normal, m.center),
-    }[type(model)](model)
+    # (plane): a random direction orthogonal to the axis / normal. Either side of such a
+    # plane holds half the area by symmetry.
+    if isinstance(model, Plane):
+        axis, origin = model.normal, model.center
+    else:
+        axis, origin = model.axis, model.center if isinstance(model, Cylinder) else model.apex
     angle = rng.uniform(0.0, 2.0 * np.pi)
-    return Cut(np.asarray(origin, float), g.frame(axis) @ [np.cos(angle), np.sin(angle), 0.0])
+    direction = g.frame(axis) @ np.array([np.cos(angle), np.sin(angle), 0.0])
+    return Cut(np.asarray(origin, dtype=np.float64), direction)
 
 
 def sample_surface(model: Model, count: int, rng, cut: Cut | None = None):
     """Exactly ``count`` points (count, 3) uniform on ``model``'s sampled surface outside
     ``cut``, and their outward normals (count, 3), by rejection from ``model.sample``."""
-    points, normals, have = [], [], 0
+    if cut is None:
+        return model.sample(count, rng)
+    points, normals, have = [np.empty((0, 3))], [np.empty((0, 3))], 0
     while have < count:
         # Every cut keeps at least half the surface, so two draws per missing point
         # usually finish in one or two rounds.
         p, n = model.sample(2 * (count - have) + 16, rng)
-        if cut is not None:
-            keep = ~cut.covers(model, p)
-            p, n = p[keep], n[keep]
+        keep = ~cut.covers(model, p)
+        p, n = p[keep], n[keep]
         points.append(p[: count - have])
         normals.append(n[: count - have])
         have += len(points[-1])
-    return np.concatenate(points) if points else np.empty((0, 3)), (
-        np.concatenate(normals) if normals else np.empty((0, 3))
-    )
+    return np.concatenate(points), np.concatenate(normals)
 
 
 # ----- helpers ------------------------------------------------------------------------------
@@ -282,10 +282,11 @@ def _true_model(cls: type[Model], rng, axis_aligned: bool) -> Model:
 def _box_strip(box: Box, rng) -> Cut:
     """A strip along one edge of one of the two largest faces, with 10 % of the area.
 
-    The face is perpendicular to the shortest side (axis i, random sign); the strip runs
-    along one of the face's two edges directions k, against the face's edge on side
-    +-j, with width w = 10 % of the total area / e_k. The largest faces hold at least
-    1/6 of the area, so w < e_j always.
+    The face is perpendicular to the shortest side (axis i, random sign). Of its two
+    in-face axes, a random one k is the strip's length direction; the strip lies against
+    the face's edge at +-e_j / 2 along the other axis j (random sign) and has width
+    w = 10 % of the total area / e_k. The largest faces hold at least 1/6 of the area,
+    so w < e_j always.
     """
     ext = np.asarray(box.extents, dtype=np.float64)
     rot = np.asarray(box.rotation, dtype=np.float64)
