@@ -51,7 +51,7 @@ import numpy as np
 from . import _checks
 from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
 from .shapes import _geometry as g
-from .synthetic import random_rotation
+from .synthetic import random_model
 
 SCENARIOS = ("RN", "RNIM", "SN", "SNIM")
 #: Outlier share of all points, the thesis's RN / RNIM levels.
@@ -157,7 +157,7 @@ def make(shape, scenario: str, level: float, *, count: int = 2000, seed: int = 0
             f"a {cls.name} needs at least {cls.sample_size}"
         )
 
-    model = _true_model(cls, _stream(seed, _MODEL_STREAM), axis_aligned)
+    model = random_model(cls, _stream(seed, _MODEL_STREAM), axis_aligned=axis_aligned)
     cut = random_cut(model, _stream(seed, _CUT_STREAM)) if scenario.endswith("IM") else None
     rng = _stream(seed, _POINT_STREAM)
     size = shape_size(model)
@@ -255,28 +255,6 @@ def sample_surface(model: Model, count: int, rng, cut: Cut | None = None):
 
 
 # ----- helpers ------------------------------------------------------------------------------
-
-
-def _true_model(cls: type[Model], rng, axis_aligned: bool) -> Model:
-    """A primitive of unit-order size, drawn like ``synthetic.random_model``."""
-    rot = np.eye(3) if axis_aligned else random_rotation(rng)
-    center = rng.uniform(-1.0, 1.0, 3)
-    size = rng.uniform(0.7, 1.3)
-    if cls is Sphere:
-        return Sphere(center, np.float64(size))
-    if cls is Box:
-        first = g.sign_canonical(rot[:, :2].T)  # the box's sign rule; det stays +1
-        rot = np.stack([first[0], first[1], np.cross(first[0], first[1])], axis=1)
-        return Box(center, rot, size * rng.uniform(0.6, 1.4, 3))
-    axis = rot[:, 2]
-    if cls is Cone:  # the cone's axis points into it, so it has no sign rule to apply
-        half_angle = rng.uniform(np.radians(20.0), np.radians(40.0))
-        height = 2.0 * size
-        return Cone(center - 0.5 * height * axis, axis, np.float64(half_angle), np.float64(height))
-    axis = g.sign_canonical(axis)
-    if cls is Cylinder:
-        return Cylinder(center, axis, np.float64(0.5 * size), np.float64(2.0 * size))
-    return Plane(axis, np.float64(-axis @ center), center, np.float64(size))
 
 
 def _box_strip(box: Box, rng) -> Cut:

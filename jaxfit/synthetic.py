@@ -9,6 +9,7 @@ import numpy as np
 
 from . import _checks
 from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
+from .shapes import _geometry as g
 
 
 def random_rotation(rng) -> np.ndarray:
@@ -20,23 +21,32 @@ def random_rotation(rng) -> np.ndarray:
     return q
 
 
-def random_model(shape, rng) -> Model:
-    """A primitive of unit-order size in a random pose (not axis-aligned)."""
+def random_model(shape, rng, *, axis_aligned: bool = False) -> Model:
+    """A primitive of unit-order size in a random pose, following the models' sign rules.
+
+    With s ~ U(0.7, 1.3): sphere radius s; cylinder radius s/2 and height 2s; cone height
+    2s and half-angle U(20, 40) degrees; box sides s * U(0.6, 1.4) each; plane disk radius
+    s. The centre is uniform in [-1, 1]^3; the rotation is random unless ``axis_aligned``.
+    """
     cls = _checks.model_class(shape)
-    rot = random_rotation(rng)
-    center = rng.uniform(-1, 1, 3)
+    rot = np.eye(3) if axis_aligned else random_rotation(rng)
+    center = rng.uniform(-1.0, 1.0, 3)
     size = rng.uniform(0.7, 1.3)
-    if cls is Plane:
-        return Plane(rot[:, 2], -rot[:, 2] @ center, center, size)
     if cls is Sphere:
-        return Sphere(center, size)
-    if cls is Cylinder:
-        return Cylinder(center, rot[:, 2], 0.5 * size, 2.0 * size)
-    if cls is Cone:
-        half_angle = rng.uniform(np.radians(20), np.radians(40))
+        return Sphere(center, np.float64(size))
+    if cls is Box:
+        first = g.sign_canonical(rot[:, :2].T)  # the box's sign rule; det stays +1
+        rot = np.stack([first[0], first[1], np.cross(first[0], first[1])], axis=1)
+        return Box(center, rot, size * rng.uniform(0.6, 1.4, 3))
+    axis = rot[:, 2]
+    if cls is Cone:  # the cone's axis points into it, so it has no sign rule to apply
+        half_angle = rng.uniform(np.radians(20.0), np.radians(40.0))
         height = 2.0 * size
-        return Cone(center - 0.5 * height * rot[:, 2], rot[:, 2], half_angle, height)
-    return Box(center, rot, size * rng.uniform(0.6, 1.4, 3))
+        return Cone(center - 0.5 * height * axis, axis, np.float64(half_angle), np.float64(height))
+    axis = g.sign_canonical(axis)
+    if cls is Cylinder:
+        return Cylinder(center, axis, np.float64(0.5 * size), np.float64(2.0 * size))
+    return Plane(axis, np.float64(-axis @ center), center, np.float64(size))
 
 
 def noisy_cloud(model: Model, *, count: int = 2000, outlier_ratio: float = 0.5,

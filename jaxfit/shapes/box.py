@@ -108,6 +108,7 @@ class Box(Model):
                 others = proj[inliers & (face != i), i]
                 lo, hi = g.main_interval(others, g.GAP_THRESHOLDS * threshold)
                 far[i] = hi if hi - near[i] > near[i] - lo else lo
+        near, far = _polish_faces(proj, near, far, threshold)
         rotation = g.sign_canonical(normals[:2])
         rotation = np.stack([rotation[0], rotation[1], np.cross(rotation[0], rotation[1])], 1)
         middle = normals.T @ (0.5 * (near + far))
@@ -137,6 +138,26 @@ class Box(Model):
     def to_mesh(self):
         matrix = g.transform(self._array("rotation"), self._array("center"))
         return trimesh.creation.box(extents=self._array("extents"), transform=matrix)
+
+
+def _polish_faces(proj, near, far, threshold, rounds: int = 2):
+    """Move each of the six faces to the median projection of the points near it.
+
+    proj : (N, 3) projections of all points on the three normals; near, far : (3,) face
+    offsets. A face's points are those within two thresholds of its plane and inside the
+    box's span on the other two axes: the histogram peak of a far face can be off by
+    more than a threshold, and the wider band still catches its points.
+    """
+    faces = np.stack([near, far])  # (2, 3)
+    for _ in range(rounds):
+        lo, hi = faces.min(axis=0) - threshold, faces.max(axis=0) + threshold
+        inside = (proj >= lo) & (proj <= hi)  # (N, 3)
+        for side, i in np.ndindex(2, 3):
+            others = np.delete(inside, i, axis=1).all(axis=1)
+            band = others & (np.abs(proj[:, i] - faces[side, i]) < 2 * threshold)
+            if band.sum() >= 3:
+                faces[side, i] = np.median(proj[band, i])
+    return faces[0], faces[1]
 
 
 def _opposite_face(proj, near, threshold):
