@@ -87,7 +87,27 @@ def _parser():
     demo = sub.add_parser("demo", help="fit a built-in synthetic cloud (no input needed)")
     common(demo, default_shape="cylinder")
     demo.set_defaults(run=_cmd_demo)
+    evaluate = sub.add_parser(
+        "evaluate", help="the thesis's RN/RNIM/SN/SNIM evaluation: CSV, tables and plots")
+    evaluate.add_argument("--shape", nargs="+", default=["sphere", "cylinder", "cone", "box"],
+                          choices=["plane", "sphere", "cylinder", "cone", "box"])
+    evaluate.add_argument("--scenario", nargs="+", default=["RN", "RNIM", "SN", "SNIM"],
+                          choices=["RN", "RNIM", "SN", "SNIM"])
+    evaluate.add_argument("--repeats", type=int, default=10, help="clouds per level (10)")
+    evaluate.add_argument("--count", type=int, default=2000, help="points per cloud (2000)")
+    evaluate.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    evaluate.add_argument("--out", default="evaluation", help="output folder (./evaluation)")
+    evaluate.set_defaults(run=_cmd_evaluate)
     return parser
+
+
+def _cmd_evaluate(args):
+    from . import evaluate
+
+    rows = evaluate.run(args.shape, args.scenario, repeats=args.repeats, count=args.count,
+                        seed=args.seed)
+    out = evaluate.write(rows, args.out)
+    print(f"{len(rows)} fits; wrote {out / 'runs.csv'}, {out / 'summary.md'} and plots")
 
 
 def main(argv=None) -> int:
