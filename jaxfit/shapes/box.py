@@ -144,17 +144,21 @@ def _polish_faces(proj, near, far, threshold, rounds: int = 2):
     """Move each of the six faces to the median projection of the points near it.
 
     proj : (N, 3) projections of all points on the three normals; near, far : (3,) face
-    offsets. A face's points are those within two thresholds of its plane and inside the
-    box's span on the other two axes: the histogram peak of a far face can be off by
-    more than a threshold, and the wider band still catches its points.
+    offsets. A face's points are those within two thresholds of its plane (the histogram
+    peak of a far face can be off by more than a threshold; the wider band still catches
+    its points) and inside the face, two thresholds away from its edges: near an edge the
+    band also holds the neighbouring faces' points, which would pull the face inwards.
     """
     faces = np.stack([near, far])  # (2, 3)
+    margin = 2 * threshold
     for _ in range(rounds):
-        lo, hi = faces.min(axis=0) - threshold, faces.max(axis=0) + threshold
-        inside = (proj >= lo) & (proj <= hi)  # (N, 3)
+        lo, hi = faces.min(axis=0), faces.max(axis=0)
+        # Thin boxes have no interior to spare: keep the whole face there.
+        shrink = np.where(hi - lo > 4 * margin, margin, -threshold)
+        inside = (proj >= lo + shrink) & (proj <= hi - shrink)  # (N, 3)
         for side, i in np.ndindex(2, 3):
             others = np.delete(inside, i, axis=1).all(axis=1)
-            band = others & (np.abs(proj[:, i] - faces[side, i]) < 2 * threshold)
+            band = others & (np.abs(proj[:, i] - faces[side, i]) < margin)
             if band.sum() >= 3:
                 faces[side, i] = np.median(proj[band, i])
     return faces[0], faces[1]
