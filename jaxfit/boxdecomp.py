@@ -6,12 +6,19 @@ two halves have the smallest total MVBB volume is kept if that total over the pa
 volume is below ``gain`` and both halves keep ``min_points`` points. The halves are split
 in turn; the boxes that are not split are the leaves, the object's parts.
 
+On surface points that rule keeps splitting every curved open patch (halving an arc
+quarters its box), so ``reference="root"`` offers the alternative of measuring each
+split's saving against the root's volume, which gives about the thesis's box counts
+(on the GraspIt! models, the Inventor duck and Homer: 0.80 -> 1-2 boxes, 0.96 -> 3-5,
+0.99 -> 4-12).
+
 The MVBB is the usual hull-face heuristic (the one ``trimesh.bounds.oriented_bounds``
-uses): for every distinct face normal of the convex hull, the smallest rectangle around
-the hull's projection (one side along a silhouette edge) times the height along the
-normal. Here it is vectorised over all normals and edges at once, uses every exact face
-normal rather than rounded directions, and also tries the axis-aligned and principal
-frames, so it is never larger than the axis-aligned box.
+uses): for a face normal of the convex hull, the smallest rectangle around the hull's
+projection (one side along a silhouette edge) times the height along the normal. Here it
+is vectorised over normals and edges, tries exact face normals (the most promising ones
+by a volume lower bound) rather than rounded directions, and also the axis-aligned and
+principal frames, so it is never larger than the axis-aligned box. It is several times
+faster than trimesh's and as tight or tighter.
 """
 
 from __future__ import annotations
@@ -26,19 +33,24 @@ from .shapes import Box
 __all__ = ["DEFAULT_CUTS", "BoxNode", "BoxTree", "decompose_boxes", "mvbb"]
 
 #: Fractions along a box axis where cut planes are tried: 0.1, 0.15, ..., 0.9.
-DEFAULT_CUTS = tuple(np.round(np.arange(0.1, 0.9001, 0.05), 2))
+DEFAULT_CUTS = tuple(round(0.1 + 0.05 * i, 2) for i in range(17))
 #: Extents of thin boxes are floored at this fraction of the root's largest extent when
 #: volumes are compared, so a flat part has a small positive volume instead of zero.
 VOLUME_FLOOR = 1e-3
-#: Candidate cuts are ranked on at most this many points of the box (an even stride,
-#: so the choice depends only on the box's points); the chosen halves get exact MVBBs.
-RANKING_POINTS = 1500
+#: Candidate cuts are ranked on at most this many points of the box; the chosen halves
+#: get MVBBs of all their points.
+RANKING_POINTS = 2000
+#: Cuts with the best volume bounds that are re-ranked by their halves' MVBBs.
+RERANKED_CUTS = 4
 # Relative singular value under which a cloud counts as flat (or a line).
 _FLAT = 1e-9
 #: Hull face normals that get the exact rectangle search in ``mvbb`` (the most promising
-#: by a volume lower bound), and in the cheaper MVBBs that rank candidate cuts.
+#: ones by a volume lower bound) ...
 MAX_DIRECTIONS = 128
+#: ... and in the cheaper MVBBs that rank candidate cuts.
 RANKING_DIRECTIONS = 16
+#: Hull vertices the frame search of an MVBB uses at most (an even subset beyond that).
+MAX_HULL_VERTICES = 500
 # Distinct hull normals considered at most (see _hull_frame).
 _MAX_NORMALS = 1024
 # Vertex-edge projections per block of directions, to bound memory on large hulls.
@@ -111,14 +123,31 @@ def _mvbb_frame(points, max_directions=None):
     centred = points - origin  # better conditioned hull and projections
     axes, s = _principal_axes(centred)
     candidates = [np.eye(3), axes]
-    if len(points) >= 4 and s[2] > _FLAT * s[0]:
+    flat = len(points) < 4 or s[2] <= _FLAT * s[0]
+    if not flat:
         try:
-            candidates.append(_hull_frame(centred, max_directions or MAX_DIRECTIONS))
+            hull = ConvexHull(centred)
+            centred = centred[hull.vertices]  # the same boxes, from far fewer points
+            if len(centred) > MAX_HULL_VERTICES:
+                # The frame is searched on an even subset of the hull's vertices; the
+                # extents below still come from all of them.
+                stride = -(-len(centred) // MAX_HULL_VERTICES)
+                hull = ConvexHull(centred[::stride])
+            candidates.append(_hull_frame(hull, max_directions or MAX_DIRECTIONS))
         except QhullError:
-            pass  # nearly flat beyond what the singular values showed: the fallbacks do
-    elif s[1] > _FLAT * s[0]:
-        candidates.append(_flat_frame(centred, axes))
-    best = min(candidates, key=lambda r: np.prod(_fit_frame(centred, r)[1]))
+            flat = True  # flatter than the singular values showed
+    if flat and s[1] > _FLAT * s[0]:
+        try:
+            candidates.append(_flat_frame(centred, axes))
+        except QhullError:
+            pass  # collinear after all: the principal frame is the answer
+
+    def volume(rotation):
+        # Floored, so that flat candidates are compared by their area.
+        extents = _fit_frame(centred, rotation)[1]
+        return np.prod(np.maximum(extents, 1e-6 * extents.max()))
+
+    best = min(candidates, key=volume)
     center, extents = _fit_frame(centred, best)
     return best, center + origin, extents
 
@@ -136,7 +165,7 @@ def _flat_frame(centred, axes):
     return np.c_[x, np.cross(axes[:, 2], x), axes[:, 2]]
 
 
-def _hull_frame(centred, max_directions):
+def _hull_frame(hull, max_directions):
     """Best frame (3, 3) with one axis along a hull face normal and one along the
     projection of a silhouette edge for that normal (a side of the 2-D rectangle).
 
@@ -144,7 +173,7 @@ def _hull_frame(centred, max_directions):
     volume (height times the hull's shadow area, which the rectangle exceeds by a factor
     between 1 and 2) get the exact rectangle search.
     """
-    hull = ConvexHull(centred)
+    centred = hull.points
     verts = centred[hull.vertices]
     normals = hull.equations[:, :3]  # (F, 3) unit, outward
     corners = centred[hull.simplices]
@@ -206,8 +235,8 @@ def _best_rectangle(centred, hull, directions, heights):
     for lo in range(0, len(dirs), step):
         s = slots[lo:lo + step]  # (k, E)
         pts = ends[s].reshape(len(s), -1, 3)  # (k, 2E, 3) the silhouette vertices
-        width = np.ptp(np.einsum("kvi,kei->kve", pts, u[s]), axis=1)
-        depth = np.ptp(np.einsum("kvi,kei->kve", pts, w[s]), axis=1)
+        width = np.ptp(pts @ u[s].transpose(0, 2, 1), axis=1)  # (k, E)
+        depth = np.ptp(pts @ w[s].transpose(0, 2, 1), axis=1)
         volume = width * depth * heights[dirs[lo:lo + step], None]
         k, j = np.unravel_index(np.argmin(volume), volume.shape)
         if volume[k, j] < best_volume:
@@ -249,13 +278,14 @@ class BoxTree:
 
     nodes : tuple of BoxNode
         In breadth-first order (parents before children).
-    gain, min_points :
+    gain, min_points, reference :
         The settings that produced the tree.
     """
 
     nodes: tuple[BoxNode, ...]
     gain: float
     min_points: int
+    reference: str = "parent"
 
     @property
     def leaves(self) -> list[int]:
@@ -291,13 +321,13 @@ class BoxTree:
             }
             for i, n in enumerate(self.nodes)
         ]
-        return {"gain": self.gain, "min_points": self.min_points, "leaves": self.leaves,
-                "nodes": nodes}
+        return {"gain": self.gain, "min_points": self.min_points,
+                "reference": self.reference, "leaves": self.leaves, "nodes": nodes}
 
 
 # ----- decomposition --------------------------------------------------------------------------
-def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50,
-                    cuts=DEFAULT_CUTS) -> BoxTree:
+def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50, cuts=DEFAULT_CUTS,
+                    reference: str = "parent") -> BoxTree:
     """Split a cloud into boxes by recursive MVBB splitting (Hübner & Kragic 2008).
 
     Parameters
@@ -306,18 +336,34 @@ def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50,
         The object's surface points.
     gain : float, default 0.96
         A box is split when its best halves' total volume over its own volume is below
-        ``gain``; higher values split more (thesis: 0.80 -> 1 box, 0.96 -> 3-5 boxes).
+        ``gain`` (see ``reference``); higher values split more (thesis: 0.80 -> 1 box,
+        0.96 -> 3-5 boxes).
     min_points : int, default 50
         Each half of a split keeps at least this many points; cuts that leave fewer on
         one side are not considered.
     cuts : sequence of float, default ``DEFAULT_CUTS`` (0.1, 0.15, ..., 0.9)
         Fractions along each box axis where cut planes are tried, in (0, 1).
+    reference : {"parent", "root"}, default "parent"
+        What the saved volume is measured against. "parent": split when
+        ``V(c1) + V(c2) < gain * V(parent)``. "root": split when the split saves more
+        than ``(1 - gain) * V(root)``, so small boxes are only split for a saving that
+        matters for the whole object. Surface points make every curved open patch split
+        well under any parent-relative gain (halving an arc quarters its box), so
+        "parent" splits curved objects into many boxes; "root" stops at the main parts.
 
     Returns
     -------
     tree : BoxTree
-        Every input index is in exactly one leaf. The splits tried depend only on each
-        box's points, so raising ``gain`` only adds splits below the same boxes.
+        Every input index is in exactly one leaf. The split tried at a box depends only
+        on the box's points, so a higher ``gain`` only adds splits below the same boxes.
+
+    Notes
+    -----
+    Every cut that leaves ``min_points`` on both sides is first ranked by a cheap upper
+    bound of its halves' volumes (the smaller of their boxes in the parent's frame and in
+    their principal frames, on at most ``RANKING_POINTS`` points); the best
+    ``RERANKED_CUTS`` are re-ranked by their halves' MVBBs, and the winner's halves get
+    exact MVBBs for the gain test.
     """
     pts = _as_cloud(points)
     if not 0 < gain:
@@ -327,6 +373,8 @@ def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50,
     fractions = np.asarray(cuts, dtype=np.float64).ravel()
     if fractions.size == 0 or np.any((fractions <= 0) | (fractions >= 1)):
         raise ValueError(f"cuts must be fractions strictly between 0 and 1, got {cuts!r}")
+    if reference not in ("parent", "root"):
+        raise ValueError(f"reference must be 'parent' or 'root', got {reference!r}")
 
     root = mvbb(pts)
     floor = VOLUME_FLOOR * float(np.max(root.extents))
@@ -334,7 +382,7 @@ def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50,
     def volume(box: Box) -> float:
         return float(np.prod(np.maximum(box.extents, floor)))
 
-    # Breadth-first: nodes[i] = [box, indices, children, parent, depth].
+    # Breadth-first; each entry is [box, indices, children, parent, depth].
     nodes = [[root, np.arange(len(pts)), (), None, 0]]
     i = 0
     while i < len(nodes):
@@ -342,43 +390,63 @@ def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50,
         halves = _best_cut(pts, idx, box, fractions, int(min_points), floor)
         if halves is not None:
             boxes = [mvbb(pts[h]) for h in halves]
-            if sum(map(volume, boxes)) < gain * volume(box):
+            saved = volume(box) - sum(map(volume, boxes))
+            if saved > (1.0 - gain) * volume(box if reference == "parent" else root):
                 nodes[i][2] = (len(nodes), len(nodes) + 1)
                 nodes += [[b, h, (), i, depth + 1] for b, h in zip(boxes, halves, strict=True)]
         i += 1
-    return BoxTree(tuple(BoxNode(*n) for n in nodes), float(gain), int(min_points))
+    return BoxTree(tuple(BoxNode(*n) for n in nodes), float(gain), int(min_points), reference)
 
 
 def _best_cut(points, idx, box, fractions, min_points, floor):
-    """Index arrays (two, ascending) of the halves of ``idx`` with the smallest total
-    MVBB volume over all axes and cut fractions, or None if no cut leaves ``min_points``
-    on both sides. Ranked on an even-stride subset of at most ``RANKING_POINTS`` points."""
+    """The halves (two ascending index arrays) of ``idx`` with the smallest total MVBB
+    volume over the three axes of ``box`` and the cut ``fractions``, among the cuts that
+    leave ``min_points`` on both sides; None if there is no such cut."""
     if len(idx) < 2 * min_points:
         return None
     local = (points[idx] - box.center) @ box.rotation  # (M, 3) in the box frame
-    extents = np.asarray(box.extents)
-    stride = max(1, -(-len(idx) // RANKING_POINTS))
-    sub = local[::stride]
-    best, best_volume = None, np.inf
-    for axis in range(3):
-        for f in fractions:
-            cut = (f - 0.5) * extents[axis]
-            below = local[:, axis] < cut
-            count = int(below.sum())
-            if count < min_points or len(idx) - count < min_points:
-                continue
-            sub_below = sub[:, axis] < cut
-            total = (_volume_estimate(sub[sub_below], floor)
-                     + _volume_estimate(sub[~sub_below], floor))
-            if total < best_volume:
-                best, best_volume = below, total
-    return None if best is None else (idx[best], idx[~best])
+    planes = (fractions[None, :] - 0.5) * np.asarray(box.extents)[:, None]  # (3, K)
+    below = np.stack([np.searchsorted(np.sort(local[:, a]), planes[a]) for a in range(3)])
+    axis, k = np.nonzero((below >= min_points) & (len(idx) - below >= min_points))
+    if not len(axis):
+        return None
+
+    # An even stride (not a random draw), so the ranking depends only on the box's
+    # points: then a higher gain only adds splits below the same boxes.
+    stride = -(-len(idx) // RANKING_POINTS)  # ceil
+    sample = local[::stride]
+    side = sample[:, axis] < planes[axis, k]  # (S, C): is each sample below each cut
+    bound = _bound_volumes(sample, side, floor) + _bound_volumes(sample, ~side, floor)
+    top = np.argsort(bound, kind="stable")[:RERANKED_CUTS]
+    totals = [_mvbb_volume(sample[side[:, c]], floor) + _mvbb_volume(sample[~side[:, c]], floor)
+              for c in top]
+    c = top[int(np.argmin(totals))]
+    lower = local[:, axis[c]] < planes[axis[c], k[c]]
+    return idx[lower], idx[~lower]
 
 
-def _volume_estimate(points, floor) -> float:
-    """Floored MVBB volume of points (M, 3); 0 for an empty set (a sub-sampled side can
-    be empty even when the full side is not)."""
+def _bound_volumes(points, member, floor) -> np.ndarray:
+    """Upper bounds (C,) on the MVBB volumes of C subsets of points (S, 3) given by the
+    columns of ``member`` (S, C): the smaller floored volume of the subset's box in the
+    given frame and in its principal frame; 0 for an empty subset."""
+    count = member.sum(axis=0)
+    weights = member / np.maximum(count, 1)
+    mean = weights.T @ points  # (C, 3)
+    outer = (points[:, :, None] * points[:, None, :]).reshape(len(points), 9)
+    scatter = (weights.T @ outer).reshape(-1, 3, 3) - mean[:, :, None] * mean[:, None, :]
+    _, axes = np.linalg.eigh(scatter)  # (C, 3, 3), columns are the principal axes
+    volumes = []
+    for coords in (points[:, None, :], (points @ axes).transpose(1, 0, 2)):
+        hi = np.where(member[..., None], coords, -np.inf).max(axis=0)  # (C, 3)
+        lo = np.where(member[..., None], coords, np.inf).min(axis=0)
+        volumes.append(np.prod(np.maximum(hi - lo, floor), axis=1))
+    return np.where(count > 0, np.minimum(*volumes), 0.0)
+
+
+def _mvbb_volume(points, floor) -> float:
+    """Floored MVBB volume of points (M, 3), with the cheaper direction search used for
+    ranking; 0 for an empty set (a sampled side can be empty when the full one is not)."""
     if len(points) == 0:
         return 0.0
-    _, _, extents = _mvbb_frame(points)
+    _, _, extents = _mvbb_frame(points, RANKING_DIRECTIONS)
     return float(np.prod(np.maximum(extents, floor)))

@@ -55,6 +55,8 @@ def _cmd_fit(args):
 
 
 def _cmd_demo(args):
+    if args.shape is None:
+        return _demo_decomposition(args)
     from .synthetic import demo_cloud
 
     points, truth, _ = demo_cloud(args.shape, seed=args.seed)
@@ -68,8 +70,8 @@ def _parser():
     parser = argparse.ArgumentParser(prog="jaxfit", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    def common(p, default_shape=None):
-        p.add_argument("--shape", default=default_shape, required=default_shape is None,
+    def common(p, default_shape=None, required=True):
+        p.add_argument("--shape", default=default_shape, required=required,
                        choices=["plane", "sphere", "cylinder", "cone", "box"])
         p.add_argument("--threshold", type=float, default=None,
                        help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
@@ -84,9 +86,28 @@ def _parser():
     common(fit)
     fit.set_defaults(run=_cmd_fit)
 
-    demo = sub.add_parser("demo", help="fit a built-in synthetic cloud (no input needed)")
-    common(demo, default_shape="cylinder")
+    demo = sub.add_parser(
+        "demo", help="decompose a built-in object (no input needed); with --shape, fit one "
+                     "primitive among outliers instead")
+    demo.add_argument("--object", default="mallet",
+                      choices=["mallet", "lollipop", "lamp"])
+    demo.add_argument("--out", default="jaxfit-demo", help="output folder (./jaxfit-demo)")
+    demo.add_argument("--gain", type=float, default=0.96)
+    common(demo, default_shape=None, required=False)
     demo.set_defaults(run=_cmd_demo)
+
+    decompose = sub.add_parser("decompose", help="decompose an object into primitives")
+    decompose.add_argument("input", help="mesh, point file or Open Inventor .iv model")
+    decompose.add_argument("--gain", type=float, default=0.96,
+                           help="split while children/parent volume < gain (0.96)")
+    decompose.add_argument("--min-points", type=int, default=None,
+                           help="smallest part (default 2%% of the points)")
+    decompose.add_argument("--num-points", type=int, default=20000,
+                           help="points sampled from a mesh (20000)")
+    decompose.add_argument("--seed", type=int, default=0)
+    decompose.add_argument("--out", default=None,
+                           help="folder for parts.json, decomposition.glb, preview.png")
+    decompose.set_defaults(run=_cmd_decompose)
     evaluate = sub.add_parser(
         "evaluate", help="the thesis's RN/RNIM/SN/SNIM evaluation: CSV, tables and plots")
     evaluate.add_argument("--shape", nargs="+", default=["sphere", "cylinder", "cone", "box"],
@@ -99,6 +120,37 @@ def _parser():
     evaluate.add_argument("--out", default="evaluation", help="output folder (./evaluation)")
     evaluate.set_defaults(run=_cmd_evaluate)
     return parser
+
+
+def _report_decomposition(result, out):
+    print(result.summary())
+    if out:
+        folder = result.save(out)
+        print(f"wrote {folder / 'parts.json'}, {folder / 'decomposition.glb'}, "
+              f"{folder / 'preview.png'}")
+
+
+def _cmd_decompose(args):
+    from .decompose import decompose
+
+    result = decompose(args.input, gain=args.gain, min_points=args.min_points,
+                       num_points=args.num_points, key=args.seed, progress=True)
+    _report_decomposition(result, args.out)
+
+
+def _demo_decomposition(args):
+    from .decompose import decompose
+    from .synthetic import composite
+
+    points, models, _ = composite(args.object, seed=args.seed)
+    print(f"demo: a {args.object} of {len(points)} points sampled from "
+          + ", ".join(m.name for m in models))
+    for model in models:
+        _print_model(model, "true")
+    result = decompose(points, gain=args.gain, key=args.seed, progress=True)
+    _report_decomposition(result, args.out)
+    for i, part in enumerate(result.parts):
+        _print_model(part.model, f"part {i}:")
 
 
 def _cmd_evaluate(args):

@@ -501,8 +501,10 @@ def _traverse(node: _Node, state: _State, out_vertices, out_faces, source: str) 
         inner = _State(state.matrix, state.coords) if kind in _SEPARATORS else state
         children = node.children
         if kind == "Switch":
+            # whichChild: -1 (the default) shows no child, -3 all of them.
             which = int(_numbers(node, "whichChild", [-1], source, 1)[0])
-            children = children if which == -3 else children[which:which + 1] if which >= 0 else []
+            if which != -3:
+                children = children[which:which + 1] if which >= 0 else []
         for child in children:
             _traverse(child, inner, out_vertices, out_faces, source)
         if kind == "TransformSeparator":

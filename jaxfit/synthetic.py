@@ -76,3 +76,52 @@ def demo_cloud(shape="cylinder", *, count: int = 2000, outlier_ratio: float = 0.
     points, truth = noisy_cloud(model, count=count, outlier_ratio=outlier_ratio,
                                 noise=noise, seed=seed + 1)
     return points, model, truth
+
+
+def _composites():
+    """Objects made of touching primitives with known parameters (metres, z up)."""
+    up = np.array([0.0, 0.0, 1.0])
+    return {
+        # a handle standing on the floor with a head across its top
+        "mallet": [Cylinder(np.array([0.0, 0.0, 0.15]), up, 0.025, 0.3),
+                   Box(np.array([0.0, 0.0, 0.33]), np.eye(3), np.array([0.2, 0.07, 0.06]))],
+        # a ball on a stick
+        "lollipop": [Cylinder(np.array([0.0, 0.0, 0.135]), up, 0.012, 0.27),
+                     Sphere(np.array([0.0, 0.0, 0.33]), 0.06)],
+        # a flat base, a post, a conical shade and a ball on its apex
+        "lamp": [Box(np.array([0.0, 0.0, 0.01]), np.eye(3), np.array([0.2, 0.2, 0.02])),
+                 Cylinder(np.array([0.0, 0.0, 0.145]), up, 0.01, 0.25),
+                 Cone(np.array([0.0, 0.0, 0.37]), -up, np.radians(40.0), 0.1),
+                 Sphere(np.array([0.0, 0.0, 0.39]), 0.02)],
+    }
+
+
+COMPOSITES = tuple(_composites())
+
+
+def composite(name: str = "mallet", *, count: int = 20000, seed: int = 0):
+    """A built-in object made of known primitives, its surface sampled.
+
+    The primitives' closed surfaces (caps included) are sampled in proportion to their
+    areas; they touch without overlapping, and the patches where one is glued onto
+    another (a handle's cap on the head's face) are dropped, as a scan would not see them.
+    Returns points (M <= count, 3), the true models (list), and the index of the model
+    each point came from (M,).
+    """
+    import trimesh
+
+    objects = _composites()
+    if name not in objects:
+        raise ValueError(f"unknown object {name!r}; expected one of {sorted(objects)}")
+    models = objects[name]
+    meshes = [m.to_mesh() for m in models]
+    areas = np.array([mesh.area for mesh in meshes])
+    rng = np.random.default_rng(seed)
+    counts = rng.multinomial(count, areas / areas.sum())
+    points = [trimesh.sample.sample_surface(mesh, int(k), seed=seed + i)[0]
+              for i, (mesh, k) in enumerate(zip(meshes, counts, strict=True))]
+    points, labels = np.vstack(points), np.repeat(np.arange(len(models)), counts)
+    hidden = np.zeros(len(points), bool)
+    for j, other in enumerate(models):
+        hidden |= (labels != j) & (other.distance(points) < 1e-6 * np.ptp(points))
+    return points[~hidden], models, labels[~hidden]

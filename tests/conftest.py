@@ -29,3 +29,16 @@ def axis_angle_deg(a, b):
     """Angle in degrees between two lines (signs ignored)."""
     c = abs(float(np.dot(a, b))) / (np.linalg.norm(a) * np.linalg.norm(b))
     return float(np.degrees(np.arccos(min(1.0, c))))
+
+
+def matches(fitted, true, tolerance):
+    """Whether a fitted primitive is within ``tolerance`` of the true one: every relative
+    size error, and every direction error in radians."""
+    from jaxfit.measures import errors
+
+    if type(fitted) is not type(true):
+        return False
+    e = errors(true, fitted)
+    rel = [v for k, v in e.items() if k.endswith("_rel") or k == "side_rel_max"]
+    angles = [np.radians(v) for k, v in e.items() if k.endswith("_deg")]
+    return all(v <= tolerance for v in rel + angles)

@@ -1,0 +1,72 @@
+"""Headless pictures of a decomposition: the input points beside the fitted primitives."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .decompose import COLOURS
+
+
+def view_angles(points) -> tuple[float, float]:
+    """(elevation, azimuth) in degrees for matplotlib: a three-quarter view that looks
+    mostly along the cloud's thinnest principal axis, so its two long axes are seen."""
+    centred = points - points.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred[:: max(1, len(points) // 5000)], full_matrices=False)
+    view = 0.8 * axes[2] + 0.45 * axes[1] + 0.4 * axes[0]
+    view /= np.linalg.norm(view)
+    elevation = np.degrees(np.arcsin(np.clip(view[2], -1, 1)))
+    azimuth = np.degrees(np.arctan2(view[1], view[0]))
+    return float(elevation), float(azimuth)
+
+
+def _shaded(mesh, rgba):
+    light = np.array([0.4, 0.3, 0.85])
+    light /= np.linalg.norm(light)
+    shade = 0.45 + 0.55 * np.abs(mesh.face_normals @ light)
+    colour = np.asarray(rgba[:3]) / 255.0
+    return np.clip(shade[:, None] * colour, 0, 1)
+
+
+def render(decomposition, path, *, size=(11, 5.5), dpi=110):
+    """Write a PNG: left the points coloured by part, right the primitives by type."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    points = decomposition.points
+    elevation, azimuth = view_angles(points)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre, half = 0.5 * (lo + hi), 0.55 * (hi - lo).max()
+    fig = plt.figure(figsize=size)
+    left = fig.add_subplot(1, 2, 1, projection="3d")
+    right = fig.add_subplot(1, 2, 2, projection="3d")
+    labels = np.full(len(points), -1)
+    for i, part in enumerate(decomposition.parts):
+        labels[part.indices] = i
+    step = max(1, len(points) // 8000)
+    palette = plt.get_cmap("tab20")
+    left.scatter(*points[::step].T, s=1.5, c=[palette(k % 20) for k in labels[::step]],
+                 depthshade=False)
+    left.set_title(f"input: {len(points)} points, coloured by part", fontsize=10)
+    kinds = []
+    for part in decomposition.parts:
+        mesh = part.model.to_mesh()
+        right.add_collection3d(Poly3DCollection(mesh.triangles, facecolors=_shaded(mesh, COLOURS[
+            part.kind]), edgecolors="none", alpha=0.95))
+        kinds.append(part.kind)
+    right.set_title(f"{len(decomposition.parts)} primitives", fontsize=10)
+    right.legend(handles=[Patch(color=np.asarray(COLOURS[k][:3]) / 255, label=k)
+                          for k in dict.fromkeys(kinds)], loc="upper right", fontsize=8)
+    for ax in (left, right):
+        ax.view_init(elev=elevation, azim=azimuth)
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+        ax.set_zlim(centre[2] - half, centre[2] + half)
+        ax.set_box_aspect((1, 1, 1))
+        ax.set_axis_off()
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92, wspace=0.0)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)

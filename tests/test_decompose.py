@@ -1,0 +1,77 @@
+"""The PSDA on objects made of known primitives: one part per primitive, the right type,
+parameters within 5 % of the truth; outputs a grasp planner and a person can read."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import matches
+
+from jaxfit import Sphere
+from jaxfit.decompose import decompose
+from jaxfit.synthetic import composite
+
+OBJECTS = ["mallet", "lollipop"]
+
+
+@pytest.fixture(scope="module")
+def decomposed():
+    out = {}
+    for name in OBJECTS:
+        points, models, labels = composite(name, count=4000, seed=1)
+        out[name] = (decompose(points, gain=0.9, key=0), models, labels)
+    return out
+
+
+@pytest.mark.parametrize("name", OBJECTS)
+def test_one_part_per_primitive_with_the_right_type(decomposed, name):
+    result, models, labels = decomposed[name]
+    assert len(result.parts) == len(models)
+    for model in models:
+        # the part holding most of this primitive's points
+        counts = [np.sum(labels[p.indices] == models.index(model)) for p in result.parts]
+        part = result.parts[int(np.argmax(counts))]
+        assert part.kind == model.name, (part.kind, model.name)
+        assert matches(part.model, model, 0.05), (part.model, model)
+
+
+def test_every_candidate_is_kept_and_the_lowest_wins(decomposed):
+    result, _, _ = decomposed["mallet"]
+    for part in result.parts:
+        assert set(part.candidates) == {"mvbb", "sphere", "cylinder", "cone", "box"}
+        best = min(c.mean_distance for c in part.candidates.values())
+        assert part.mean_distance == best
+        assert part.candidates["mvbb"].model is part.box
+        assert part.candidates[part.winner].model is part.model
+        assert part.indices.size > 0
+    covered = np.concatenate([p.indices for p in result.parts])
+    assert np.array_equal(np.sort(covered), np.arange(len(result.points)))
+
+
+def test_save_writes_json_glb_and_preview(decomposed, tmp_path):
+    result, _, _ = decomposed["lollipop"]
+    folder = result.save(tmp_path / "out")
+    data = json.loads((folder / "parts.json").read_text())
+    assert [p["kind"] for p in data["parts"]] == [p.kind for p in result.parts]
+    assert data["hierarchy"]["leaves"] and data["num_points"] == len(result.points)
+    assert (folder / "decomposition.glb").stat().st_size > 1000
+    assert (folder / "preview.png").stat().st_size > 10_000
+    scene = result.to_scene()
+    assert len(scene.geometry) == len(result.parts)
+
+
+def test_sources_and_errors(tmp_path):
+    import trimesh
+
+    mesh = Sphere(np.zeros(3), 1.0).to_mesh()
+    result = decompose(mesh, num_points=1500, gain=0.8, shapes=("sphere",))
+    assert len(result.parts) == 1 and result.parts[0].kind == "sphere"
+    path = tmp_path / "ball.stl"
+    mesh.export(path)
+    again = decompose(path, num_points=1500, gain=0.8, shapes=("sphere",))
+    assert abs(again.parts[0].model.radius - 1) < 0.02
+    assert isinstance(trimesh.load(path), trimesh.Trimesh)
+    with pytest.raises(ValueError, match="gain"):
+        decompose(mesh, gain=1.5)
+    with pytest.raises(ValueError, match="unknown shape"):
+        decompose(mesh, shapes=("torus",))
