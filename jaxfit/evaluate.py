@@ -177,6 +177,6 @@ def write(rows, out) -> Path:
         for shape in dict.fromkeys(s["shape"] for s in summary):
             plot(summary, out / f"{shape}.png", shape)
     except ImportError:
-        print("matplotlib is not installed (pip install 'jaxfit[bench]'): no plots",
+        print("matplotlib is not installed: no plots",
               file=sys.stderr)
     return out
