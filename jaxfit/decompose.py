@@ -27,6 +27,8 @@ SHAPES = ("sphere", "cylinder", "cone", "box")
 #: Part threshold: this fraction of the diagonal of the part's bounding box. Wider than
 #: for a single fit, as in the thesis: a part is only approximately a primitive.
 THRESHOLD_FRACTION = 0.02
+#: Points of a part handed to RANSAC (a random subset when the part is larger).
+MAX_FIT_POINTS = 2048
 #: Colours (RGBA) of the primitives in scenes and previews.
 COLOURS = {
     "sphere": (231, 76, 60, 255), "cylinder": (52, 152, 219, 255),
@@ -190,7 +192,7 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     tree = decompose_boxes(points, gain=gain, min_points=min_points, reference="root")
     groups = [tree.nodes[i].indices for i in tree.leaves]
     say(f"box decomposition: {len(groups)} parts ({time.perf_counter() - started:.2f} s)")
-    parts = _fit_parts(points, groups, classes, threshold_fraction, key, say, started)
+    parts = _fit_parts(points, groups, classes, threshold_fraction, key, seed, say, started)
     for _ in range(reassign if len(parts) > 1 else 0):
         # Box cuts are planes, so a part can keep a sliver of its neighbour (the top of
         # a handle in the head's box). Give every point to the winner nearest to it and
@@ -201,20 +203,26 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
         if any(g.size < max(5, min_points // 2) for g in regrouped) or all(
                 np.array_equal(g, p.indices) for g, p in zip(regrouped, parts, strict=True)):
             break
-        parts = _fit_parts(points, regrouped, classes, threshold_fraction, key, say, started)
+        parts = _fit_parts(points, regrouped, classes, threshold_fraction, key, seed, say,
+                           started)
     return Decomposition(points, tuple(parts), tree, time.perf_counter() - started)
 
 
-def _fit_parts(points, groups, classes, threshold_fraction, key, say, started):
+def _fit_parts(points, groups, classes, threshold_fraction, key, seed, say, started):
     """Fitting and evaluation phases: every primitive on every part (one fit_batch per
     primitive), and the candidate nearest to the part's points wins."""
     clouds = [points[g] for g in groups]
     boxes = [mvbb(cloud) for cloud in clouds]
+    # RANSAC needs no more than a few thousand points of a part to find its primitive;
+    # the candidates are still judged on all of them.
+    rng = np.random.default_rng(seed)
+    samples = [c if len(c) <= MAX_FIT_POINTS else c[rng.choice(len(c), MAX_FIT_POINTS, False)]
+               for c in clouds]
     thresholds = [threshold_fraction * float(np.linalg.norm(b.extents)) for b in boxes]
     candidates = [{"mvbb": Candidate(box, _mean(box, cloud))}
                   for box, cloud in zip(boxes, clouds, strict=True)]
     for cls in classes:
-        results = fit_batch(clouds, cls, thresholds=thresholds, key=key, skip_failures=True)
+        results = fit_batch(samples, cls, thresholds=thresholds, key=key, skip_failures=True)
         for found, result, cloud in zip(candidates, results, clouds, strict=True):
             if result is not None:
                 found[cls.name] = Candidate(result.model, _mean(result.model, cloud))
