@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 from conftest import matches
 
-from jaxfit import Sphere
-from jaxfit.decompose import decompose
+from jaxfit import Sphere, decompose
 from jaxfit.synthetic import composite
 
 OBJECTS = ["mallet", "lollipop"]
