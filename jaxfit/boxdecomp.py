@@ -26,7 +26,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 from .shapes import Box
 
@@ -119,6 +118,7 @@ def _principal_axes(centred):
 
 def _mvbb_frame(points, max_directions=None):
     """(rotation (3, 3), centre (3,), extents (3,)) of the MVBB of points (N, 3)."""
+    from scipy.spatial import ConvexHull, QhullError  # lazily: 0.3 s of import
     origin = points.mean(axis=0)
     centred = points - origin  # better conditioned hull and projections
     axes, s = _principal_axes(centred)
@@ -154,6 +154,7 @@ def _mvbb_frame(points, max_directions=None):
 
 def _flat_frame(centred, axes):
     """Frame of the minimum-area rectangle of a planar cloud, the plane normal third."""
+    from scipy.spatial import ConvexHull  # lazily: 0.3 s of import
     flat = centred @ axes[:, :2]
     hull = flat[ConvexHull(flat).vertices]
     edges = np.roll(hull, -1, axis=0) - hull
@@ -202,6 +203,7 @@ def _best_rectangle(centred, hull, directions, heights):
     The projected hull is the polygon of silhouette edges, so each rectangle is measured
     on the silhouette vertices of its own direction only.
     """
+    from scipy.spatial import QhullError  # lazily: 0.3 s of import
     # Hull edges from the facet adjacency: neighbours[i, j] is opposite vertex j of facet i.
     simplices, neighbours = hull.simplices, hull.neighbors
     facet, corner = np.nonzero(neighbours > np.arange(len(simplices))[:, None])

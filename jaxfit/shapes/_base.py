@@ -92,7 +92,8 @@ class Model:
         raise NotImplementedError
 
     def to_mesh(self):
-        """A ``trimesh.Trimesh`` of the bounded primitive."""
+        """A ``trimesh.Trimesh`` of the bounded primitive. (The primitives import trimesh
+        here, not at module level: it costs half a second of every process's start.)"""
         raise NotImplementedError
 
     def to_dict(self) -> dict:

@@ -15,7 +15,6 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
 from . import _geometry as g
 from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
@@ -137,6 +136,8 @@ class Box(Model):
 
     def to_mesh(self):
         matrix = g.transform(self._array("rotation"), self._array("center"))
+        import trimesh
+
         return trimesh.creation.box(extents=self._array("extents"), transform=matrix)
 
 

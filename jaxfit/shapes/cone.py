@@ -13,7 +13,6 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
 from . import _geometry as g
 from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
@@ -118,6 +117,8 @@ class Cone(Model):
         # trimesh's cone has its base at z = 0 and its apex at +z; ours points along -axis.
         axis = self._array("axis")
         matrix = g.transform(g.frame(-axis), self._array("apex") + self.height * axis)
+        import trimesh
+
         return trimesh.creation.cone(
             radius=float(self.base_radius), height=float(self.height), sections=sections,
             transform=matrix,

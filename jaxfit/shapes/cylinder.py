@@ -11,7 +11,6 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
 from . import _geometry as g
 from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
@@ -87,6 +86,8 @@ class Cylinder(Model):
 
     def to_mesh(self, sections: int = 64):
         matrix = g.transform(g.frame(self.axis), self.center)
+        import trimesh
+
         return trimesh.creation.cylinder(
             radius=float(self.radius), height=float(self.height), sections=sections,
             transform=matrix,

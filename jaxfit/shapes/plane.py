@@ -9,7 +9,6 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
 from . import _geometry as g
 from ._base import _INVARIANT, _LENGTH, _POINT, Model, register
@@ -102,6 +101,8 @@ def _disk(radius, sections, matrix):
     vertices = np.vstack([[0.0, 0.0, 0.0], rim])
     faces = np.stack([np.zeros(sections, int), 1 + np.arange(sections),
                       1 + (np.arange(sections) + 1) % sections], 1)
+    import trimesh
+
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     mesh.apply_transform(matrix)
     return mesh

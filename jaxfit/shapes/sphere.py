@@ -6,7 +6,6 @@ from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
 from . import _geometry as g
 from ._base import _LENGTH, _POINT, Model, register
@@ -68,6 +67,8 @@ class Sphere(Model):
         return np.abs(self.residual(points))
 
     def to_mesh(self, subdivisions: int = 3):
+        import trimesh
+
         mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=float(self.radius))
         mesh.apply_translation(self._array("center"))
         return mesh
