@@ -80,7 +80,7 @@ def _parser():
         p.add_argument("--mesh", metavar="OUT", help="write the primitive's mesh (.ply, .stl, ...)")
 
     fit = sub.add_parser("fit", help="fit one primitive to a point cloud or mesh file")
-    fit.add_argument("cloud", help=".ply .obj .stl .off .glb .gltf .xyz .txt .csv .crd .npy")
+    fit.add_argument("cloud", help=".ply .obj .stl .off .glb .gltf .iv .xyz .txt .csv .crd .npy")
     fit.add_argument("--num-points", type=int, default=20000,
                      help="points sampled from a mesh's surface (default 20000)")
     common(fit)

@@ -136,21 +136,15 @@ class Decomposition:
 
 def load_source(source, *, num_points: int = 20000, seed: int = 0) -> np.ndarray:
     """(N, 3) points from an array, a trimesh mesh (surface-sampled) or a file path
-    (.iv via ``jaxfit.iv``, the rest via ``jaxfit.io.load_points``)."""
+    (anything ``jaxfit.io.load_points`` reads, Open Inventor ``.iv`` included)."""
     import trimesh
 
+    from .io import load_points, sample_surface
+
     if isinstance(source, trimesh.Trimesh):
-        points, _ = trimesh.sample.sample_surface(source, num_points, seed=seed)
-        return _checks.cloud(points)
+        return _checks.cloud(sample_surface(source, num_points, seed))
     if isinstance(source, str | Path):
-        path = Path(source)
-        if path.suffix.lower() == ".iv":
-            from .iv import load_iv
-
-            return load_source(load_iv(path), num_points=num_points, seed=seed)
-        from .io import load_points
-
-        return load_points(path, num_points=num_points, seed=seed)
+        return load_points(source, num_points=num_points, seed=seed)
     return _checks.cloud(source)
 
 

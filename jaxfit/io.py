@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = ["LoadError", "SUPPORTED_EXTENSIONS", "load_points"]
 
-MESH_EXTENSIONS = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
+MESH_EXTENSIONS = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf", ".iv")
 TEXT_EXTENSIONS = (".xyz", ".txt", ".csv", ".crd", ".pts")
 SUPPORTED_EXTENSIONS = MESH_EXTENSIONS + TEXT_EXTENSIONS + (".npy",)
 
@@ -31,7 +31,8 @@ def load_points(path, *, num_points: int = 20000, seed: int = 0) -> np.ndarray:
         File to read; the format is chosen by extension (case-insensitive), one of
         ``SUPPORTED_EXTENSIONS``:
 
-        - meshes (``.ply .obj .stl .off .glb .gltf``, read with trimesh): if the file has
+        - meshes (``.ply .obj .stl .off .glb .gltf`` read with trimesh, Open Inventor
+          ``.iv`` with ``jaxfit.iv``): if the file has
           faces, ``num_points`` points are sampled uniformly over the surface area
           (multi-body files and glTF scenes are merged into one mesh first). A file with
           vertices but no faces (e.g. a PLY point cloud) returns its vertices as stored.
@@ -102,6 +103,10 @@ def _check_points(points: np.ndarray, path: Path, what: str = "points") -> None:
 def _load_mesh(path: Path, ext: str, num_points: int, seed: int) -> np.ndarray:
     import trimesh  # deferred: trimesh is slow to import and only meshes need it
 
+    if ext == ".iv":
+        from .iv import load_iv
+
+        return sample_surface(load_iv(path), num_points, seed, path)
     try:
         # process=False keeps vertices exactly as stored (no merging or reordering).
         geom = trimesh.load(path, file_type=ext[1:], process=False)
@@ -121,6 +126,14 @@ def _load_mesh(path: Path, ext: str, num_points: int, seed: int) -> np.ndarray:
         else:
             verts = [np.asarray(g.vertices) for g in parts if hasattr(g, "vertices")]
             geom = trimesh.PointCloud(np.concatenate(verts) if verts else np.empty((0, 3)))
+
+    return sample_surface(geom, num_points, seed, path)
+
+
+def sample_surface(geom, num_points: int, seed: int = 0, path="mesh") -> np.ndarray:
+    """(num_points, 3) points uniform over the area of a trimesh mesh, or the vertices
+    (N, 3) as they are when it has no faces; ``path`` only names it in errors."""
+    import trimesh
 
     vertices = np.asarray(getattr(geom, "vertices", np.empty((0, 3))), dtype=np.float64)
     faces = getattr(geom, "faces", None)

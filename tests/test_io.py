@@ -259,3 +259,14 @@ def test_misc_meshes(shared_data, name, extents):
     out = load_points(shared_data / "misc" / name, num_points=4000, seed=3)
     check(out, 4000)
     np.testing.assert_allclose(np.ptp(out, axis=0), extents, rtol=0.1)
+
+
+def test_open_inventor_model_is_surface_sampled(shared_data):
+    # GraspIt!'s cylinder: r 17, h 58 (MANIFEST); every sample lies on its closed surface.
+    points = load_points(shared_data / "graspit" / "IROS08" / "LargeCylinder03.iv",
+                         num_points=3000, seed=2)
+    assert points.shape == (3000, 3)
+    assert np.allclose(np.sort(np.ptp(points, axis=0)), [34, 34, 58], atol=0.5)
+    again = load_points(shared_data / "graspit" / "IROS08" / "LargeCylinder03.iv",
+                        num_points=3000, seed=2)
+    assert np.array_equal(points, again)
