@@ -43,13 +43,21 @@ def threshold_for(case: scenarios.Scenario) -> float:
     return max(0.01, sc) * case.size
 
 
+NORMALS = ("estimated", "true")
+
+
 def run(shapes=SHAPES, scenario_names=scenarios.SCENARIOS, *, repeats: int = 10,
-        count: int = 2000, seed: int = 0, progress: bool = True, **fit_kwargs) -> list[dict]:
+        count: int = 2000, seed: int = 0, progress: bool = True, normals: str = "estimated",
+        **fit_kwargs) -> list[dict]:
     """Fit every (shape, scenario, level) ``repeats`` times; one dict per fit.
 
     Repeat r of every setting uses seed ``seed + r`` for the cloud and for the fit's key,
-    so each row can be reproduced alone. ``fit_kwargs`` go to ``fit_batch``.
+    so each row can be reproduced alone. ``fit_kwargs`` go to ``fit_batch`` (e.g.
+    ``estimator``). ``normals``: what an oriented estimator reads, "estimated" from the
+    points by ``fit`` (what a user without normals gets) or the scenario's "true" ones.
     """
+    if normals not in NORMALS:
+        raise ValueError(f"normals must be one of {NORMALS}, got {normals!r}")
     settings = [(shape, name, level) for shape in shapes for name in scenario_names
                 for level in scenarios.levels(name)]
     rows, started = [], time.perf_counter()
@@ -59,6 +67,8 @@ def run(shapes=SHAPES, scenario_names=scenarios.SCENARIOS, *, repeats: int = 10,
                  for r in range(repeats)]
         clouds = [c.points for c in cases]
         thresholds = [threshold_for(c) for c in cases]
+        if normals == "true":
+            fit_kwargs["normals"] = [c.normals for c in cases]
         if shape not in warmed:  # compile outside the timed call
             fit_batch(clouds, shape, thresholds=thresholds, key=seed, skip_failures=True,
                       **fit_kwargs)
@@ -69,7 +79,8 @@ def run(shapes=SHAPES, scenario_names=scenarios.SCENARIOS, *, repeats: int = 10,
         per_fit = (time.perf_counter() - start) / repeats
         for r, (case, result) in enumerate(zip(cases, results, strict=True)):
             row = {"shape": shape, "scenario": name, "level": level, "repeat": r,
-                   "seed": seed + r, "threshold": thresholds[r], "runtime_s": per_fit}
+                   "seed": seed + r, "threshold": thresholds[r], "runtime_s": per_fit,
+                   "estimator": estimator_name(shape, fit_kwargs.get("estimator"), normals)}
             if result is None:
                 row["failed"] = 1
             else:
@@ -84,6 +95,14 @@ def run(shapes=SHAPES, scenario_names=scenarios.SCENARIOS, *, repeats: int = 10,
     if progress:
         print(file=sys.stderr)
     return rows
+
+
+def estimator_name(shape: str, estimator: str | None, normals: str) -> str:
+    """How a row was fitted: "thesis", or "oriented (estimated normals)" / "(true ...)"."""
+    from .shapes import REGISTRY
+
+    est = REGISTRY[shape].estimator(estimator)
+    return f"oriented ({normals} normals)" if est.uses_normals else est.name
 
 
 def _progress(done, total, started, label):

@@ -2,6 +2,7 @@
 inlier masks against planted outliers, the stopping rule, determinism and scale."""
 
 import math
+import os
 import subprocess
 import sys
 
@@ -97,10 +98,12 @@ def test_stopping_rule_values():
 def test_status_reports_why_the_loop_stopped():
     points, _, _ = demo_cloud("sphere", seed=2)
     assert jaxfit.fit(points, "sphere").status is Status.CONVERGED
-    # The cone's floor on T (Cone.min_hypotheses) outlasts a smaller budget.
-    capped = jaxfit.fit(demo_cloud("cone", seed=2)[0], "cone", max_hypotheses=2048)
+    # The thesis cone's floor on T (Cone.min_hypotheses) outlasts a smaller budget.
+    capped = jaxfit.fit(demo_cloud("cone", seed=2)[0], "cone", max_hypotheses=2048,
+                        estimator="thesis")
     assert capped.status is Status.MAX_HYPOTHESES and capped.num_hypotheses == 2048
-    stalled = jaxfit.fit(demo_cloud("cone", seed=2)[0], "cone", max_stall=1024)
+    stalled = jaxfit.fit(demo_cloud("cone", seed=2)[0], "cone", max_stall=1024,
+                         estimator="thesis")
     assert stalled.status is Status.STALLED and stalled.num_hypotheses < 16384
     fixed = jaxfit.fit(demo_cloud("sphere", seed=2)[0], "sphere", min_hypotheses=3072,
                        max_hypotheses=3072)
@@ -201,3 +204,41 @@ def test_fit_batch_errors_name_the_cloud():
     assert results[0] is not None and results[1] is None
     with pytest.raises(jaxfit.FitError, match="degenerate"):
         jaxfit.fit_batch([good, line], "plane", max_hypotheses=1024)
+
+
+@pytest.mark.parametrize("name", ["cylinder", "cone"])
+def test_oriented_estimator_needs_far_fewer_hypotheses_on_incomplete_models(name):
+    from jaxfit.scenarios import make
+
+    case = make(name, "RNIM", 0.6, seed=3)
+    threshold = 0.01 * case.size
+    oriented = jaxfit.fit(case.points, name, threshold=threshold, estimator="oriented")
+    given = jaxfit.fit(case.points, name, threshold=threshold, normals=case.normals)
+    thesis = jaxfit.fit(case.points, name, threshold=threshold, estimator="thesis")
+    assert oriented.num_hypotheses * 8 <= thesis.num_hypotheses
+    for result in (oriented, given):  # normals estimated from the points, or the true ones
+        assert axis_angle_deg(result.model.axis, case.model.axis) < 0.5
+        assert result.num_hypotheses <= 1024
+
+
+def test_fit_batch_shards_clouds_over_forced_host_devices():
+    # Four CPU devices exist only in a fresh process started with the flag.
+    code = (
+        "import jax, numpy as np, jaxfit\n"
+        "from jaxfit import ransac\n"
+        "from jaxfit.synthetic import demo_cloud\n"
+        "assert len(jax.local_devices()) == 4\n"
+        "clouds = [demo_cloud('sphere', seed=s, count=500)[0] for s in range(6)]\n"
+        "put = ransac._placer(jax.local_devices())\n"
+        "assert len(put(np.zeros((8, 3))).sharding.device_set) == 4\n"
+        "res = jaxfit.fit_batch(clouds, 'sphere', key=1, batch_size=256)\n"
+        "print(' '.join(f'{r.model.radius:.6f}' for r in res))\n"
+    )
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, env=env)
+    assert out.returncode == 0, out.stderr
+    clouds = [demo_cloud("sphere", seed=s, count=500)[0] for s in range(6)]
+    here = jaxfit.fit_batch(clouds, "sphere", key=1, batch_size=256)
+    radii = [float(r) for r in out.stdout.split()]
+    assert np.allclose(radii, [r.model.radius for r in here], rtol=1e-5)

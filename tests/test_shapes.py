@@ -83,6 +83,60 @@ def test_clean_minimal_sample_is_reestimated_exactly(name, rng):
             assert gap.max() < 2 / 128
 
 
+ORIENTED = [name for name in SHAPES if "oriented" in REGISTRY[name].estimators]
+
+
+def test_oriented_estimators_exist_where_documented():
+    assert ORIENTED == ["cone", "cylinder", "sphere"]
+    assert [REGISTRY[n].oriented_sample_size for n in ORIENTED] == [3, 2, 2]
+    # plane and box fall back to the thesis's estimator; an unknown name is an error
+    assert Plane.estimator("oriented").name == "thesis"
+    assert Cylinder.estimator().name == "oriented" and Sphere.estimator().name == "thesis"
+    with pytest.raises(ValueError, match="unknown estimator"):
+        Cone.estimator("schnabel")
+
+
+@pytest.mark.parametrize("name", ORIENTED)
+def test_oriented_sample_is_reestimated_exactly_whatever_the_normals_signs(name, rng):
+    cls = REGISTRY[name]
+    k = cls.oriented_sample_size
+    for _ in range(5):
+        model = random_model(name, rng)
+        points, normals = model.sample(k, rng)
+        signs = rng.choice([-1.0, 1.0], (k, 1))  # estimated normals are not always oriented
+        thetas, valid = ransac.estimate_batch(
+            cls, jnp.asarray(points)[None], None, jnp.asarray(normals * signs)[None], "oriented"
+        )
+        theta = np.asarray(thetas[0], np.float64)
+        assert bool(valid[0])
+        assert np.abs(cls.theta_residual(theta, tuple(points.T), np)).max() < 1e-4
+        if name == "sphere":
+            assert np.allclose(theta, model.theta(), atol=1e-4)
+        else:
+            assert abs(abs(theta[3:6] @ model.axis) - 1) < 1e-6
+            size = model.radius if name == "cylinder" else model.half_angle
+            assert np.isclose(theta[6], size, rtol=1e-4)
+        if name == "cone":
+            assert np.allclose(theta[:3], model.apex, atol=1e-4)
+            assert theta[3:6] @ model.axis > 0
+
+
+@pytest.mark.parametrize("name", ORIENTED)
+def test_oriented_degenerate_samples_are_invalid_without_nan(name, rng):
+    cls = REGISTRY[name]
+    k = cls.oriented_sample_size
+    p = rng.uniform(-0.5, 0.5, (k, 3))
+    n = np.tile([0.0, 0.0, 1.0], (k, 1))
+    cases = [(p, n), (np.zeros((k, 3)), n)]  # parallel normals: no axis, no centre, no apex
+    if name == "cone":  # normals in one plane (a cylinder's): the tangent planes share a line
+        n = np.stack([[np.cos(a), np.sin(a), 0.0] for a in (0.1, 1.3, 2.9)])
+        cases.append((n * 0.4, n))
+    samples, normals = (jnp.asarray(np.stack(c)) for c in zip(*cases, strict=True))
+    thetas, valid = ransac.estimate_batch(cls, samples, None, normals, "oriented")
+    assert not np.any(np.asarray(valid))
+    assert np.all(np.isfinite(np.asarray(thetas)))
+
+
 @pytest.mark.parametrize("name", SHAPES)
 def test_residual_is_zero_on_surface_and_measures_offsets(name, rng):
     for model in [random_model(name, rng) for _ in range(3)]:

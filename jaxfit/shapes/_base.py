@@ -14,6 +14,11 @@ needs as class-level functions:
   arrays; every argument broadcasts, so the engine passes (H,) parameters against
   (C, 1) coordinates and gets a (C, H) block with hypotheses on the fast axis. ``xp`` is
   ``jax.numpy`` or ``numpy``: one formula serves the kernel, the refinement and NumPy.
+- ``estimate_oriented(sample, normals, support) -> (theta, valid)`` (optional): an
+  estimator from fewer points with their normals (k', 3) (Schnabel, Wahl & Klein 2007),
+  with ``oriented_sample_size`` k'. It must not depend on the normals' signs: estimated
+  normals are oriented only where that can be done. ``estimators`` holds both as
+  ``Estimator`` records, and ``default_estimator`` names the one ``fit`` uses.
 - ``canonicalize(theta)``: projects a flat parameter vector back onto the valid set
   (unit axes, positive radius) after a refinement step.
 - ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
@@ -26,6 +31,7 @@ documented per primitive, while the dataclass fields are the public parameters.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import ClassVar
 
 import jax
@@ -38,9 +44,41 @@ REGISTRY: dict[str, type[Model]] = {}
 _POINT, _LENGTH, _INVARIANT = "point", "length", "invariant"
 
 
+@dataclasses.dataclass(frozen=True)
+class Estimator:
+    """One way of turning a minimal sample into a hypothesis.
+
+    name : "thesis" or "oriented".
+    sample_size : points per minimal sample (k).
+    uses_normals : whether ``estimate`` reads the sample's normals.
+    min_hypotheses : floor on the confidence-based hypothesis count T for this estimator.
+    estimate : (sample (k, 3), normals (k, 3) or None, support (M, 3)) -> (theta, valid).
+    """
+
+    name: str
+    sample_size: int
+    uses_normals: bool
+    min_hypotheses: int
+    estimate: Callable
+
+
+ESTIMATORS = ("thesis", "oriented")
+
+
+def _estimators(cls) -> dict[str, Estimator]:
+    """The thesis's estimator always; the oriented one where the primitive defines it."""
+    out = {"thesis": Estimator("thesis", cls.sample_size, False, cls.min_hypotheses,
+                               lambda sample, normals, support: cls.estimate(sample, support))}
+    if "estimate_oriented" in vars(cls):
+        out["oriented"] = Estimator("oriented", cls.oriented_sample_size, True, 0,
+                                    cls.estimate_oriented)
+    return out
+
+
 def register(cls):
     """Make ``cls`` a frozen dataclass, a JAX pytree, and a known primitive."""
     cls = dataclasses.dataclass(frozen=True)(cls)
+    cls.estimators = _estimators(cls)
     names = [f.name for f in dataclasses.fields(cls)]
     jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
     REGISTRY[cls.name] = cls
@@ -57,6 +95,10 @@ class Model:
     #: sample gives a good model; the thesis's cylinder and cone also need their three
     #: circle points on one cross-section, which it does not model.
     min_hypotheses: ClassVar[int] = 0
+    #: name -> Estimator, filled by ``register``; see ``estimator``.
+    estimators: ClassVar[dict[str, Estimator]]
+    #: The estimator ``fit`` uses unless told otherwise: the one that measured best.
+    default_estimator: ClassVar[str] = "thesis"
     #: field name -> (trailing shape, kind), the kind saying how it maps under scaling.
     field_specs: ClassVar[dict[str, tuple[tuple[int, ...], str]]]
 
@@ -64,6 +106,16 @@ class Model:
     @staticmethod
     def estimate(sample, support):  # pragma: no cover - abstract
         raise NotImplementedError
+
+    @classmethod
+    def estimator(cls, name: str | None = None) -> Estimator:
+        """The Estimator called ``name`` ("thesis" or "oriented"; None: the default).
+        A primitive without an oriented estimator (plane, box) uses its thesis one."""
+        if name is None:
+            name = cls.default_estimator
+        if name not in ESTIMATORS:
+            raise ValueError(f"unknown estimator {name!r}; expected one of {ESTIMATORS}")
+        return cls.estimators.get(name, cls.estimators["thesis"])
 
     @staticmethod
     def theta_residual(theta, p, xp):  # pragma: no cover - abstract

@@ -47,6 +47,19 @@ def triangle(a, b, c):
     return normal, valid, (u, v, w)
 
 
+def closest_points(p1, d1, p2, d2):
+    """Closest points of the lines p1 + s d1 and p2 + t d2 (all (3,)), and whether the
+    lines are far from parallel (|d1 x d2| > SIN_TOL |d1| |d2|)."""
+    a11, a12, a22 = jnp.dot(d1, d1), jnp.dot(d1, d2), jnp.dot(d2, d2)
+    gap = p2 - p1
+    b1, b2 = jnp.dot(d1, gap), jnp.dot(d2, gap)
+    det = a11 * a22 - a12 * a12  # = |d1 x d2|^2
+    valid = det > (SIN_TOL * SIN_TOL) * a11 * a22
+    det = jnp.where(valid, det, 1.0)
+    s, t = (a22 * b1 - a12 * b2) / det, (a12 * b1 - a11 * b2) / det
+    return p1 + s * d1, p2 + t * d2, valid
+
+
 def circle3(a, b, c):
     """Circle through three points (3,) each.
 

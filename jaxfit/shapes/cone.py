@@ -1,8 +1,13 @@
-"""Cone from four points, the thesis's apex construction (THESIS.md section 3).
+"""Cone. Estimators: the thesis's four points and its apex construction (THESIS.md
+section 3), or three points with normals (Schnabel et al. 2007; the default).
 
-p1..p3 give a plane, its circumcircle (c0, r) and the axis through c0 along the plane
+Thesis: p1..p3 give a plane, its circumcircle (c0, r) and the axis through c0 along the plane
 normal. p4 projected on the plane fixes the meridian half-plane through p4; the circle
 meets it at s, and the line through s and p4 crosses the axis at the apex.
+
+Oriented: the apex is where the three tangent planes meet; the unit vectors from the apex
+to the points make one angle with the axis, so their tips lie on a circle whose plane is
+normal to the axis.
 
 theta = (apex (3), unit axis (3) pointing from the apex into the cone, half_angle).
 """
@@ -38,6 +43,8 @@ class Cone(Model):
 
     name: ClassVar[str] = "cone"
     sample_size: ClassVar[int] = 4
+    oriented_sample_size: ClassVar[int] = 3
+    default_estimator: ClassVar[str] = "oriented"
     num_params: ClassVar[int] = 7
     min_hypotheses: ClassVar[int] = 16384  # see Model.min_hypotheses
     field_specs: ClassVar = {
@@ -64,6 +71,24 @@ class Cone(Model):
         # The circle's centre lies inside the cone, so the axis points from apex to c0.
         axis = jnp.where(h_apex < 0, n, -n)
         return jnp.concatenate([c0 + h_apex * n, axis, half_angle[None]]), valid
+
+    @staticmethod
+    def estimate_oriented(sample, normals, support):
+        n = normals
+        c23, c31, c12 = jnp.cross(n[1], n[2]), jnp.cross(n[2], n[0]), jnp.cross(n[0], n[1])
+        det = jnp.dot(n[0], c23)
+        valid = jnp.abs(det) > g.SIN_TOL * jnp.prod(g.safe_norm(n))
+        d = jnp.sum(n * sample, axis=1)  # tangent planes n_i . x = d_i
+        apex = (d[0] * c23 + d[1] * c31 + d[2] * c12) / jnp.where(valid, det, 1.0)
+        u, length = g.safe_normalize(sample - apex)
+        axis, _ = g.safe_normalize(jnp.cross(u[1] - u[0], u[2] - u[0]))
+        axis = jnp.where(jnp.sum(u @ axis) < 0, -axis, axis)  # into the points' nappe
+        cos = u @ axis
+        half_angle = jnp.mean(jnp.arctan2(g.safe_norm(jnp.cross(u, axis)), cos))
+        valid &= (jnp.min(length) > g.LEN_TOL) & jnp.all(cos > 0)
+        valid &= (half_angle > MIN_ANGLE) & (half_angle < jnp.pi / 2 - MIN_ANGLE)
+        valid &= g.safe_norm(apex) < g.MAX_EXTENT
+        return jnp.concatenate([apex, axis, half_angle[None]]), valid
 
     @staticmethod
     def theta_residual(theta, p, xp):

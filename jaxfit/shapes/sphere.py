@@ -1,4 +1,8 @@
-"""Sphere: |p - center| = radius. theta = (cx, cy, cz, radius); four points per sample."""
+"""Sphere: |p - center| = radius. theta = (cx, cy, cz, radius).
+
+Estimators: the thesis's four points (Cramer's rule), or two points with normals (the
+centre is where the two normal lines pass closest).
+"""
 
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ class Sphere(Model):
 
     name: ClassVar[str] = "sphere"
     sample_size: ClassVar[int] = 4
+    oriented_sample_size: ClassVar[int] = 2
     num_params: ClassVar[int] = 4
     field_specs: ClassVar = {"center": ((3,), _POINT), "radius": ((), _LENGTH)}
 
@@ -40,6 +45,14 @@ class Sphere(Model):
         x = (sq[0] * c34 + sq[1] * c42 + sq[2] * c23) / (2.0 * jnp.where(valid, det, 1.0))
         radius = g.safe_norm(x)
         return jnp.concatenate([sample[0] + x, radius[None]]), valid & (radius < g.MAX_EXTENT)
+
+    @staticmethod
+    def estimate_oriented(sample, normals, support):
+        c1, c2, valid = g.closest_points(sample[0], normals[0], sample[1], normals[1])
+        center = 0.5 * (c1 + c2)
+        radius = 0.5 * (g.safe_norm(sample[0] - center) + g.safe_norm(sample[1] - center))
+        valid &= (radius > g.LEN_TOL) & (radius < g.MAX_EXTENT)
+        return jnp.concatenate([center, radius[None]]), valid
 
     @staticmethod
     def theta_residual(theta, p, xp):

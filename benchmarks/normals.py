@@ -1,0 +1,184 @@
+"""Normal estimation: which k-NN search, how fast, how accurate.
+
+    python -m benchmarks.normals [--quick]
+
+Times (1) scipy's cKDTree (build + query) and (2) a batched brute-force kNN in JAX (query
+blocks of 1024 against all points, ``lax.top_k``; warm, compilation timed apart) for
+N = 1e4, 1e5, 1e6 points on a sphere, k = 16; the JAX search is O(N^2) and is skipped
+where it would take minutes (its time is then extrapolated, and marked so). Then times
+the whole ``jaxfit.estimate_normals`` per orientation, and measures the angle between
+estimated and true normals on noisy synthetic shapes, and the share of normals that point
+outward where the shape is closed. Writes benchmarks/results/normals.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxfit.normals import estimate_normals, knn
+from jaxfit.shapes import Cone, Cylinder, Plane, Sphere
+
+OUT = Path(__file__).resolve().parent / "results"
+K = 16
+BLOCK = 1024
+#: Largest N the brute-force JAX search is run at (N^2 distances: 1e6 would be 1e12).
+JAX_MAX_N = 100_000
+
+
+@partial(jax.jit, static_argnames=("k",))
+def _jax_knn_padded(points, k: int):
+    """Indices (B, k) of the k nearest of padded points (B, 3), B a multiple of BLOCK."""
+    norms = jnp.sum(points * points, axis=1)
+
+    def block(queries):
+        d2 = jnp.sum(queries * queries, axis=1)[:, None] - 2.0 * queries @ points.T + norms
+        return jax.lax.top_k(-d2, k)[1]
+
+    return jax.lax.map(block, points.reshape(-1, BLOCK, 3)).reshape(-1, k)
+
+
+def jax_knn(points: np.ndarray, k: int) -> np.ndarray:
+    """Indices (N, k) of each point's k nearest, by brute force in JAX. Padding points
+    sit far away, so they are never anyone's neighbour."""
+    n = len(points)
+    size = -(-n // BLOCK) * BLOCK
+    padded = np.full((size, 3), 1e6, np.float32)
+    padded[:n] = points - points.mean(axis=0)
+    return np.asarray(_jax_knn_padded(jnp.asarray(padded), k))[:n]
+
+
+def _timed(fn, *args, repeats: int = 1):
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out = fn(*args)
+        best = min(best, time.perf_counter() - start)
+    return best, out
+
+
+def speed(sizes, seed: int = 0):
+    rows = []
+    rng = np.random.default_rng(seed)
+    for n in sizes:
+        points, _ = Sphere(np.zeros(3), np.float64(1.0)).sample(n, rng)
+        repeats = 3 if n <= 10_000 else 1
+        tree_s, tree_idx = _timed(knn, points, K, repeats=repeats)
+        row = {"n": n, "k": K, "ckdtree_s": tree_s}
+        if n <= JAX_MAX_N:
+            compile_s, _ = _timed(jax_knn, points, K)
+            jax_s, jax_idx = _timed(jax_knn, points, K, repeats=repeats)
+            # Same neighbour sets up to float32 ties.
+            agree = np.mean([len(np.intersect1d(a, b)) / K for a, b in
+                             zip(tree_idx[:2000], jax_idx[:2000], strict=True)])
+            row.update(jax_s=jax_s, jax_first_call_s=compile_s, jax_agreement=float(agree))
+        else:
+            last = next(r for r in reversed(rows) if "jax_s" in r)
+            row.update(jax_s=None, jax_estimate_s=last["jax_s"] * (n / last["n"]) ** 2)
+        for orient in ("mst", "direct", None):
+            row[f"estimate_normals_{orient}_s"] = _timed(
+                partial(estimate_normals, orient=orient), points)[0]
+        rows.append(row)
+        print(row, flush=True)
+    return rows
+
+
+def _shapes():
+    up = np.array([0.0, 0.0, 1.0])
+    return {
+        "plane": Plane(up, np.float64(0.0), np.zeros(3), np.float64(1.0)),
+        "sphere": Sphere(np.zeros(3), np.float64(1.0)),
+        "cylinder": Cylinder(np.zeros(3), up, np.float64(0.5), np.float64(2.0)),
+        "cone": Cone(np.zeros(3), up, np.radians(30.0), np.float64(2.0)),
+    }
+
+
+def _angles(estimated, true):
+    cos = np.abs(np.einsum("ij,ij->i", estimated, true))
+    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+
+
+def accuracy(count: int = 20_000, noises=(0.0, 0.005, 0.01), ks=(8, 16, 32), seed: int = 0):
+    """Angle errors (degrees, signs ignored) against the true normals of shapes of unit
+    size, points displaced along the normal by U(-noise, noise); and the share of
+    normals oriented outward on the closed sphere (and for the open shapes, the share
+    agreeing with the majority sign, i.e. consistency)."""
+    rows = []
+    for name, model in _shapes().items():
+        for noise in noises:
+            rng = np.random.default_rng(seed)
+            points, true = model.sample(count, rng)
+            points = points + true * rng.uniform(-noise, noise, (count, 1))
+            for k in ks:
+                row = {"shape": name, "noise": noise, "k": k}
+                for orient in ("mst", "direct"):
+                    est = estimate_normals(points, k, orient=orient)
+                    agree = np.einsum("ij,ij->i", est, true) > 0
+                    row[f"outward_{orient}"] = float(agree.mean())
+                    row[f"consistent_{orient}"] = float(max(agree.mean(), 1 - agree.mean()))
+                err = _angles(est, true)
+                row.update(mean_deg=float(err.mean()), median_deg=float(np.median(err)),
+                           p95_deg=float(np.percentile(err, 95)))
+                rows.append(row)
+                print(row, flush=True)
+    return rows
+
+
+def _markdown(speed_rows, accuracy_rows):
+    lines = [
+        "# Normal estimation", "",
+        f"k = {K}; points uniform on the unit sphere; 2 shared CPU cores; seconds, best of "
+        "3 runs for N = 1e4, one run above. JAX: brute-force kNN in query blocks of "
+        f"{BLOCK} (warm; first call with compilation in brackets).", "",
+        "| N | cKDTree kNN | JAX brute-force kNN | estimate_normals (mst) | (direct) | "
+        "(no orientation) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in speed_rows:
+        if r.get("jax_s") is not None:
+            jax_cell = f"{r['jax_s']:.3f} ({r['jax_first_call_s']:.2f})"
+        else:
+            jax_cell = f"not run (~{r['jax_estimate_s']:.0f} s extrapolated as N^2)"
+        lines.append(f"| {r['n']:,} | {r['ckdtree_s']:.3f} | {jax_cell} | "
+                     f"{r['estimate_normals_mst_s']:.2f} | {r['estimate_normals_direct_s']:.2f} "
+                     f"| {r['estimate_normals_None_s']:.2f} |")
+    lines += [
+        "", "Accuracy: 20,000 points on unit-size shapes (plane disk r 1, sphere r 1, "
+        "cylinder r 0.5 h 2, cone 30 deg h 2; caps not sampled), displaced along the normal "
+        "by U(-noise, noise). Angle to the true normal in degrees (signs ignored). "
+        "'outward' is the share of normals pointing outward (for the plane: along +z); "
+        "'consistent' the share agreeing with the majority sign.", "",
+        "| shape | noise | k | mean | median | p95 | outward mst | outward direct | "
+        "consistent mst |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in accuracy_rows:
+        lines.append(f"| {r['shape']} | {r['noise']} | {r['k']} | {r['mean_deg']:.2f} | "
+                     f"{r['median_deg']:.2f} | {r['p95_deg']:.2f} | {r['outward_mst']:.3f} | "
+                     f"{r['outward_direct']:.3f} | {r['consistent_mst']:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="N <= 1e5, k = 16 only")
+    args = parser.parse_args(argv)
+    sizes = (10_000, 100_000) if args.quick else (10_000, 100_000, 1_000_000)
+    speed_rows = speed(sizes)
+    accuracy_rows = accuracy(ks=(16,) if args.quick else (8, 16, 32))
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "normals.json").write_text(json.dumps(
+        {"speed": speed_rows, "accuracy": accuracy_rows}, indent=1))
+    (OUT / "normals.md").write_text(_markdown(speed_rows, accuracy_rows))
+    print((OUT / "normals.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
