@@ -90,7 +90,7 @@ def _parser():
         "demo", help="decompose a built-in object (no input needed); with --shape, fit one "
                      "primitive among outliers instead")
     demo.add_argument("--object", default="mallet",
-                      choices=["mallet", "lollipop", "lamp"])
+                      choices=["mallet", "lollipop", "hammer", "lamp"])
     demo.add_argument("--out", default="jaxfit-demo", help="output folder (./jaxfit-demo)")
     demo.add_argument("--gain", type=float, default=0.96)
     common(demo, default_shape=None, required=False)
@@ -118,6 +118,10 @@ def _parser():
     evaluate.add_argument("--count", type=int, default=2000, help="points per cloud (2000)")
     evaluate.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     evaluate.add_argument("--out", default="evaluation", help="output folder (./evaluation)")
+    evaluate.add_argument("--estimator", choices=["thesis", "oriented"], default=None,
+                          help="minimal-sample estimator (default: each shape's best)")
+    evaluate.add_argument("--normals", choices=["estimated", "true"], default="estimated",
+                          help="normals the oriented estimators read (default: estimated)")
     evaluate.set_defaults(run=_cmd_evaluate)
     return parser
 
@@ -157,7 +161,7 @@ def _cmd_evaluate(args):
     from . import evaluate
 
     rows = evaluate.run(args.shape, args.scenario, repeats=args.repeats, count=args.count,
-                        seed=args.seed)
+                        seed=args.seed, normals=args.normals, estimator=args.estimator)
     out = evaluate.write(rows, args.out)
     print(f"{len(rows)} fits; wrote {out / 'runs.csv'}, {out / 'summary.md'} and plots")
 

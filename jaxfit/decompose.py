@@ -6,11 +6,30 @@
 3. Evaluation: each candidate scores the mean distance of *all* the part's points to its
    closed, bounded surface; the part's own bounding box competes too; the lowest wins.
 4. The object is the set of winning primitives (``Decomposition``).
+
+Departure from the thesis: reassignment (``reassign`` rounds, after step 3). Box cuts
+are planes, so a leaf can keep a sliver of its neighbour, and a primitive fitted to a
+leaf is bounded by the leaf's points only. Measured on the built-in lamp (base, post,
+shade, ball) with the leaves as the thesis leaves them: the base's leaf kept the foot
+of the post and lost to its MVBB (0.039 m thick instead of 0.02), the post came out
+6-10 % short, and the ball's leaf, part of it shade, was won by its MVBB. So every
+point goes to the nearest primitive and the parts whose points changed are fitted and
+evaluated again, until nothing changes (at most ``reassign`` rounds). Two choices make
+that converge on the primitives: ownership is judged with each part's best *fitted*
+primitive, not its MVBB (a box around a mixed part is near all of its points and keeps
+the sliver), and cylinders and cones are first re-bounded on the inliers of their
+unbounded surface in the whole cloud (the post grows back through the shade's leaf in
+one round instead of halving the gap each round). A part left with almost no points is
+merged into the others, and parts of one kind that have come to overlap are merged
+(``_merge``: the YCB soup can, cut into three slabs, became three coaxial cylinders).
+With it the lamp's four parts are within 1.5 % of the truth.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import itertools
 import json
 import sys
 import time
@@ -19,9 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from . import _checks
-from .boxdecomp import BoxTree, decompose_boxes, mvbb
+from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .ransac import fit_batch
-from .shapes import Box, Model
+from .shapes import Box, Cone, Cylinder, Model
 
 SHAPES = ("sphere", "cylinder", "cone", "box")
 #: Part threshold: this fraction of the diagonal of the part's bounding box. Wider than
@@ -73,7 +92,7 @@ class Decomposition:
     """The object as a set of primitives.
 
     points : (N, 3) the cloud the decomposition worked on.
-    parts : one Part per leaf of ``tree``.
+    parts : one Part per leaf of ``tree``, less those reassignment merged.
     tree : the box hierarchy (which box split into which).
     seconds : wall time of decompose (boxes, fits and evaluation).
     """
@@ -165,9 +184,10 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     threshold_fraction : inlier threshold of a part's fits, as a fraction of its bounding
         box's diagonal.
     key : seed for sampling and fitting.
-    reassign : rounds (at most) of giving every point to the nearest winning primitive
-        and fitting the regrouped parts again, so parts follow the primitives rather than
-        the box cuts; 0 keeps the leaves as they are.
+    reassign : rounds (at most) of giving every point to the nearest part's primitive
+        (its best fitted one, cylinders and cones grown along their surface) and fitting
+        the parts that changed again, so parts follow the primitives rather than the box
+        cuts (see the module docstring); 0 keeps the leaves as they are.
     progress : print the stages to stderr.
     """
     started = time.perf_counter()
@@ -186,23 +206,102 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     tree = decompose_boxes(points, gain=gain, min_points=min_points, reference="root")
     groups = [tree.nodes[i].indices for i in tree.leaves]
     say(f"box decomposition: {len(groups)} parts ({time.perf_counter() - started:.2f} s)")
-    parts = _fit_parts(points, groups, classes, threshold_fraction, key, seed, say, started)
+    fit = functools.partial(_fit_parts, points, classes=classes,
+                            threshold_fraction=threshold_fraction, key=key, seed=seed,
+                            say=say, started=started)
+    parts = fit(groups)
     for _ in range(reassign if len(parts) > 1 else 0):
-        # Box cuts are planes, so a part can keep a sliver of its neighbour (the top of
-        # a handle in the head's box). Give every point to the winner nearest to it and
-        # fit again, so each primitive grows back to all of its points.
-        distances = np.stack([p.model.distance(points) for p in parts])  # (P, N)
-        owner = np.argmin(distances, axis=0)
-        regrouped = [np.flatnonzero(owner == i) for i in range(len(parts))]
-        if any(g.size < max(5, min_points // 2) for g in regrouped) or all(
-                np.array_equal(g, p.indices) for g, p in zip(regrouped, parts, strict=True)):
+        regrouped, kinds = _regroup(points, parts, threshold_fraction, max(5, min_points // 2))
+        regrouped = _merge(points, regrouped, kinds, tree.nodes[0].box, gain)
+        # A part whose points did not change keeps its fits: only the others are refitted.
+        known = {p.indices.tobytes(): p for p in parts}
+        changed = [g for g in regrouped if g.tobytes() not in known]
+        if not changed:
             break
-        parts = _fit_parts(points, regrouped, classes, threshold_fraction, key, seed, say,
-                           started)
+        fresh = dict(zip((g.tobytes() for g in changed), fit(changed), strict=True))
+        parts = [known.get(g.tobytes()) or fresh[g.tobytes()] for g in regrouped]
     return Decomposition(points, tuple(parts), tree, time.perf_counter() - started)
 
 
-def _fit_parts(points, groups, classes, threshold_fraction, key, seed, say, started):
+def _regroup(points, parts, threshold_fraction, smallest):
+    """Give every point to the part whose primitive is nearest to it; a part left with
+    fewer than ``smallest`` points is merged into the others (its primitive is explained
+    by theirs). Returns the new index groups (ascending) and the kind of the primitive
+    that claimed each.
+
+    Box cuts are planes, so a part can keep a sliver of its neighbour (the top of a
+    post in the shade's box). Ownership is judged with each part's best *fitted*
+    primitive, grown along its surface (``_grown``), not with its bounding box: a box
+    enclosing a mixed part is near every point in it and would keep the sliver.
+    """
+    models = [_grown(_best_fitted(p), points, _threshold(p.box, threshold_fraction))
+              for p in parts]
+    alive = np.arange(len(models))
+    while True:
+        distances = np.stack([models[i].distance(points) for i in alive])  # (P, N)
+        owner = alive[np.argmin(distances, axis=0)]
+        sizes = np.bincount(owner, minlength=len(models))[alive]
+        if sizes.min() >= smallest or len(alive) == 1:
+            return [np.flatnonzero(owner == i) for i in alive], [models[i].name for i in alive]
+        alive = np.delete(alive, np.argmin(sizes))
+
+
+def _merge(points, groups, kinds, root: Box, gain: float):
+    """Merge, pair by pair, parts claimed by the same kind of primitive that have come to
+    overlap: the box around both is larger than the larger of their boxes by less than
+    BoxDecomposition's split must save (``(1 - gain)`` of the root's volume). So the
+    three slabs the box cuts make of a soup can, each of which then fits the whole can,
+    become one part again. Parts of different kinds stay apart (they are different
+    primitives, even if they cross), and so do neighbours that merely touch: merging every
+    pair whose split saves too little (the plain inverse of the split test) left the
+    Inventor duck as 2 parts, one a cone longer than the duck, and Homer as 2 parts."""
+    volume = functools.partial(box_volume, floor=volume_floor(root))
+    need = (1.0 - gain) * volume(root)
+    groups = list(groups)
+    sizes = [volume(mvbb(points[g])) for g in groups]
+    while len(groups) > 1:
+        pairs = [(i, j) for i, j in itertools.combinations(range(len(groups)), 2)
+                 if kinds[i] == kinds[j]]
+        if not pairs:
+            return groups
+        unions = [np.union1d(groups[i], groups[j]) for i, j in pairs]
+        whole = [volume(mvbb(points[u])) for u in unions]
+        grown = [w - max(sizes[i], sizes[j]) for (i, j), w in zip(pairs, whole, strict=True)]
+        best = int(np.argmin(grown))
+        if grown[best] > need:
+            return groups
+        (i, j), union = pairs[best], unions[best]
+        groups = [g for k, g in enumerate(groups) if k not in (i, j)] + [union]
+        kinds = [c for k, c in enumerate(kinds) if k not in (i, j)] + [kinds[i]]
+        sizes = [s for k, s in enumerate(sizes) if k not in (i, j)] + [whole[best]]
+    return groups
+
+
+def _best_fitted(part: Part) -> Model:
+    """The part's primitive with the lowest mean distance, its bounding box left out."""
+    fitted = {k: c for k, c in part.candidates.items() if k != "mvbb"}
+    return min(fitted.values(), key=lambda c: c.mean_distance).model if fitted else part.model
+
+
+def _grown(model: Model, points, threshold) -> Model:
+    """A cylinder or cone re-bounded on the inliers of its unbounded surface in the
+    whole cloud (other primitives unchanged), so it reaches the points of it that a box
+    cut gave to a neighbour. The bounds are the shape's own (``from_theta``): the main
+    run of inliers along the axis, so a gap of a few thresholds stops the growth."""
+    if not isinstance(model, Cylinder | Cone):
+        return model
+    inliers = np.abs(model.residual(points)) < threshold
+    if not inliers.any():
+        return model
+    return type(model).from_theta(model.theta(), points, inliers, threshold)
+
+
+def _threshold(box: Box, fraction: float) -> float:
+    """A part's inlier threshold: ``fraction`` of its bounding box's diagonal."""
+    return fraction * float(np.linalg.norm(box.extents))
+
+
+def _fit_parts(points, groups, *, classes, threshold_fraction, key, seed, say, started):
     """Fitting and evaluation phases: every primitive on every part (one fit_batch per
     primitive), and the candidate nearest to the part's points wins."""
     clouds = [points[g] for g in groups]
@@ -212,7 +311,7 @@ def _fit_parts(points, groups, classes, threshold_fraction, key, seed, say, star
     rng = np.random.default_rng(seed)
     samples = [c if len(c) <= MAX_FIT_POINTS else c[rng.choice(len(c), MAX_FIT_POINTS, False)]
                for c in clouds]
-    thresholds = [threshold_fraction * float(np.linalg.norm(b.extents)) for b in boxes]
+    thresholds = [_threshold(b, threshold_fraction) for b in boxes]
     candidates = [{"mvbb": Candidate(box, _mean(box, cloud))}
                   for box, cloud in zip(boxes, clouds, strict=True)]
     for cls in classes:

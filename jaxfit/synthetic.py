@@ -88,6 +88,10 @@ def _composites():
         # a ball on a stick
         "lollipop": [Cylinder(np.array([0.0, 0.0, 0.135]), up, 0.012, 0.27),
                      Sphere(np.array([0.0, 0.0, 0.33]), 0.06)],
+        # a handle with a head across its top and a ball at its foot
+        "hammer": [Sphere(np.array([0.0, 0.0, 0.03]), 0.03),
+                   Cylinder(np.array([0.0, 0.0, 0.185]), up, 0.015, 0.25),
+                   Box(np.array([0.0, 0.0, 0.34]), np.eye(3), np.array([0.18, 0.05, 0.06]))],
         # a flat base, a post, a conical shade and a ball on its apex
         "lamp": [Box(np.array([0.0, 0.0, 0.01]), np.eye(3), np.array([0.2, 0.2, 0.02])),
                  Cylinder(np.array([0.0, 0.0, 0.145]), up, 0.01, 0.25),
@@ -125,3 +129,161 @@ def composite(name: str = "mallet", *, count: int = 20000, seed: int = 0):
     for j, other in enumerate(models):
         hidden |= (labels != j) & (other.distance(points) < 1e-6 * np.ptp(points))
     return points[~hidden], models, labels[~hidden]
+
+
+#: Object kinds ``scene`` places on its floor.
+SCENE_OBJECTS = ("sphere", "cylinder", "lying_cylinder", "cone", "box")
+
+
+def _scene_object(kind: str, rng):
+    """(model, footprint radius) of one object of unit-floor scale resting on z = 0."""
+    up = np.array([0.0, 0.0, 1.0])
+    r = rng.uniform(0.12, 0.2)
+    if kind == "sphere":
+        return Sphere(np.array([0.0, 0.0, r]), np.float64(r)), r
+    if kind == "cylinder":
+        h = rng.uniform(2.0, 3.0) * r
+        return Cylinder(np.array([0.0, 0.0, 0.5 * h]), up, np.float64(r), np.float64(h)), r
+    if kind == "lying_cylinder":
+        h, turn = rng.uniform(2.0, 3.0) * r, rng.uniform(0.0, np.pi)
+        axis = g.sign_canonical(np.array([np.cos(turn), np.sin(turn), 0.0]))
+        return Cylinder(np.array([0.0, 0.0, r]), axis, np.float64(r),
+                        np.float64(h)), np.hypot(0.5 * h, r)
+    if kind == "cone":
+        h, half = rng.uniform(2.0, 3.0) * r, np.arctan(1.0 / rng.uniform(2.0, 3.0))
+        base = h * np.tan(half)
+        return Cone(np.array([0.0, 0.0, h]), -up, np.float64(half), np.float64(h)), base
+    if kind == "box":
+        ext = np.array([*rng.uniform(1.4, 2.2, 2) * r, rng.uniform(1.0, 2.5) * r])
+        turn = rng.uniform(0.0, 0.5 * np.pi)
+        c, s = np.cos(turn), np.sin(turn)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        first = g.sign_canonical(rot[:, :2].T)  # the box's sign rule; det stays +1
+        rot = np.stack([first[0], first[1], np.cross(first[0], first[1])], axis=1)
+        return Box(np.array([0.0, 0.0, 0.5 * ext[2]]), rot, ext), 0.5 * np.hypot(*ext[:2])
+    raise ValueError(f"unknown scene object {kind!r}; expected one of {SCENE_OBJECTS}")
+
+
+def _moved(model: Model, shift) -> Model:
+    return model.rescaled(1.0, np.asarray(shift, np.float64))
+
+
+def _box_faces(box: Box):
+    """The five faces of a box resting on the floor (all but the bottom) as Planes."""
+    rot, ext, center = box._array("rotation"), box._array("extents"), box._array("center")
+    faces = []
+    for axis, sign in [(0, 1), (0, -1), (1, 1), (1, -1), (2, 1)]:
+        normal = g.sign_canonical(sign * rot[:, axis])
+        middle = center + sign * 0.5 * ext[axis] * rot[:, axis]
+        others = np.delete(ext, axis)
+        faces.append(Plane(normal, np.float64(-normal @ middle), middle,
+                           np.float64(0.5 * np.hypot(*others))))
+    return faces
+
+
+def _place(footprints, rng, floor: float, gap: float, tries: int = 1000):
+    """Centres (n, 2) on the floor disk of radius ``floor`` for objects of the given
+    footprint radii, none overlapping (at least ``gap`` apart), by rejection."""
+    centres = []
+    for radius in footprints:
+        for _ in range(tries):
+            xy = rng.uniform(-1.0, 1.0, 2) * (floor - radius)
+            if np.hypot(*xy) + radius <= floor and all(
+                    np.hypot(*(xy - c)) >= radius + other + gap
+                    for c, other in zip(centres, footprints, strict=False)):
+                centres.append(xy)
+                break
+        else:
+            raise ValueError(f"could not place {len(footprints)} objects apart on the floor")
+    return np.array(centres)
+
+
+def scene(seed: int = 0, *, objects=None, count: int = 4000, noise: float = 0.002,
+          floor: float = 0.8):
+    """A plane floor with objects standing on it, sampled like a scan: the synthetic
+    scenes ``jaxfit.detect`` is tested on.
+
+    The floor is the disk of radius ``floor`` in z = 0; objects (0.12-0.2 in radius, not
+    overlapping) rest on it: spheres, standing and lying cylinders, standing cones (apex
+    up) and boxes. What a scan of the surfaces would see is sampled, in proportion to
+    area, and displaced along the normal by U(-noise, noise): the floor minus the objects'
+    footprints, sphere surfaces, cylinder and cone sides (no caps), the five upper faces
+    of a box.
+
+    Parameters
+    ----------
+    seed : every random choice comes from ``numpy.random.default_rng(seed)``.
+    objects : a sequence of kinds from ``SCENE_OBJECTS``, or an int (that many objects of
+        random kinds); default 2-5 objects of random kinds.
+    count : points sampled before the hidden ones (under the objects) are dropped.
+    noise : half-width of the uniform displacement along the normal.
+    floor : radius of the floor disk.
+
+    Returns
+    -------
+    points (M, 3), models (list of the true primitives: the floor Plane first, then each
+    object's surfaces; a box is given as five Planes, its faces) and labels (M,), the
+    index into models of each point's surface.
+    """
+    rng = np.random.default_rng(seed)
+    if objects is None:
+        objects = int(rng.integers(2, 6))
+    if isinstance(objects, (int, np.integer)):
+        objects = [SCENE_OBJECTS[i] for i in rng.integers(0, len(SCENE_OBJECTS), objects)]
+    solids, footprints = zip(*[_scene_object(kind, rng) for kind in objects], strict=True)
+    centres = _place(footprints, rng, floor=floor, gap=0.05)
+    solids = [_moved(m, [*xy, 0.0]) for m, xy in zip(solids, centres, strict=True)]
+    up = np.array([0.0, 0.0, 1.0])
+    models = [Plane(up, np.float64(0.0), np.zeros(3), np.float64(floor))]
+    owner = [None]  # the solid hiding points of each model, for the visibility test
+    for solid in solids:
+        surfaces = _box_faces(solid) if isinstance(solid, Box) else [solid]
+        models += surfaces
+        owner += [solid] * len(surfaces)
+    areas = np.array([_visible_area(m, s) for m, s in zip(models, owner, strict=True)])
+    counts = rng.multinomial(count, areas / areas.sum())
+    points, normals, labels = [], [], []
+    for i, (model, k) in enumerate(zip(models, counts, strict=True)):
+        p, n = _sample_surface(model, owner[i], int(k), rng)
+        points.append(p)
+        normals.append(n)
+        labels.append(np.full(len(p), i))
+    points, normals, labels = np.vstack(points), np.vstack(normals), np.concatenate(labels)
+    # Floor under the objects and faces inside another solid are not seen by a scan.
+    hidden = np.zeros(len(points), bool)
+    for solid in solids:
+        inside = solid.distance(points) < 1e-9
+        hidden |= inside & (np.array([owner[i] is not solid for i in labels]))
+    points = points + normals * rng.uniform(-noise, noise, (len(points), 1))
+    keep = ~hidden
+    return points[keep], models, labels[keep]
+
+
+def _visible_area(model: Model, solid) -> float:
+    """Area of one scene surface (floor disk, sphere, side, face) before hiding."""
+    if isinstance(model, Plane) and solid is None:
+        return np.pi * float(model.radius) ** 2
+    if isinstance(model, Plane):  # a box face
+        ext = solid._array("extents")
+        rot = solid._array("rotation")
+        axis = int(np.argmax(np.abs(rot.T @ model._array("normal"))))
+        return float(np.prod(np.delete(ext, axis)))
+    if isinstance(model, Sphere):
+        return 4.0 * np.pi * float(model.radius) ** 2
+    if isinstance(model, Cylinder):
+        return 2.0 * np.pi * float(model.radius) * float(model.height)
+    slant = float(model.height) / np.cos(float(model.half_angle))
+    return np.pi * float(model.base_radius) * slant
+
+
+def _sample_surface(model: Model, solid, count: int, rng):
+    """count points and normals on one scene surface (a box face: on that face only)."""
+    if not isinstance(model, Plane) or solid is None:
+        return model.sample(count, rng)
+    rot, ext = solid._array("rotation"), solid._array("extents")
+    axis = int(np.argmax(np.abs(rot.T @ model._array("normal"))))
+    local = rng.uniform(-0.5, 0.5, (count, 3)) * ext
+    side = np.sign(rot[:, axis] @ (model._array("center") - solid._array("center")))
+    local[:, axis] = side * 0.5 * ext[axis]
+    normal = side * rot[:, axis]
+    return local @ rot.T + solid._array("center"), np.tile(normal, (count, 1))
