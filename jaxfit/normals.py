@@ -35,18 +35,19 @@ BLOCK = 65536
 _EPS = 1e-9
 
 
-def knn(points: np.ndarray, k: int) -> np.ndarray:
-    """Indices (N, k) of each point's k nearest points (itself first, up to ties)."""
+def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
+    """Indices (M, k) of the k nearest points of points (N, 3) to each query (M, 3)
+    (default: the points themselves, each first among its own neighbours up to ties)."""
     from scipy.spatial import cKDTree
 
-    return cKDTree(points).query(points, k=k, workers=-1)[1]
+    return cKDTree(points).query(points if queries is None else queries, k=k, workers=-1)[1]
 
 
 def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
-    """Unit normals (N, 3), unoriented: the least-variance direction of each point's
-    neighbourhood points[neighbours] (N, k, 3)."""
-    out = np.empty_like(points)
-    for start in range(0, len(points), BLOCK):
+    """Unit normals (M, 3), unoriented: the least-variance direction of each
+    neighbourhood points[neighbours] (M, k, 3)."""
+    out = np.empty((len(neighbours), 3), points.dtype)
+    for start in range(0, len(neighbours), BLOCK):
         hood = points[neighbours[start:start + BLOCK]]  # (B, k, 3)
         hood = hood - hood.mean(axis=1, keepdims=True)
         cov = np.einsum("bki,bkj->bij", hood, hood)  # (B, 3, 3)
@@ -148,6 +149,14 @@ def _check_k(k, n: int) -> int:
     if k > n:
         raise ValueError(f"k = {k} is larger than the number of points ({n})")
     return int(k)
+
+
+def normals_at(points: np.ndarray, indices: np.ndarray, k: int = 16) -> np.ndarray:
+    """Unoriented unit normals (M, 3) at points[indices] only, from their k nearest
+    neighbours among all points (N, 3): what ``fit`` needs, since it draws minimal
+    samples from a pool of points and never reads the others' normals."""
+    k = _check_k(k, len(points))
+    return pca_normals(points, knn(points, k, points[indices]))
 
 
 def estimate_normals(points, k: int = 16, *, orient: str | None = "mst",

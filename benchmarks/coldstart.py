@@ -1,0 +1,282 @@
+"""Cold start: whole-process wall time of "load a cloud, fit one sphere, print", and the
+first-call compile time of each primitive.
+
+Every measurement is a fresh interpreter (``subprocess``), timed from launch to exit, on the
+same 10,000-point sphere cloud with 30 % outliers saved as ``.npy``:
+- jaxfit from Python, first process (an empty compilation-cache folder: it compiles and
+  fills the cache), second process (the folder the first one filled), and with the cache
+  off (``JAXFIT_CACHE=0``);
+- the jaxfit command line, ``python -m jaxfit fit CLOUD --shape sphere`` (the ``jaxfit``
+  console script runs the same code; called through ``-m`` to leave pyenv's shim out),
+  first and second process;
+- pyRANSAC-3D (``pip install ".[bench]"``; skipped if missing): its default 1000
+  iterations, and stopped by its callback at the confidence-0.99 count (as jaxfit stops);
+- the NumPy reference loop (``jaxfit.reference.ransac``). It imports jaxfit and so JAX.
+The methods take turns within each repeat, so the machine's load affects them alike.
+
+Then, per primitive, a fresh process fits a 2,000-point cloud twice and reports the first
+and second call and JAX's own compile-phase durations (``jax.monitoring``), with the cache
+off, first process (empty folder) and second process.
+
+Run: ``python -m benchmarks.coldstart [--repeats 5]``. Writes
+``benchmarks/results/coldstart.json``, ``coldstart.md`` and ``coldstart.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxfit.synthetic import demo_cloud
+
+RESULTS = Path(__file__).resolve().parent / "results"
+SHAPES = ("plane", "sphere", "cylinder", "cone", "box")
+THRESHOLD = 0.01
+
+JAXFIT_PY = """
+import sys
+import numpy as np
+import jaxfit
+points = np.load(sys.argv[1])
+result = jaxfit.fit(points, "sphere", threshold={threshold})
+print(result.model, result.num_inliers)
+"""
+
+PYRANSAC = """
+import random, sys
+import numpy as np
+import pyransac3d
+points = np.load(sys.argv[1])
+random.seed(0)
+adaptive = sys.argv[2] == "adaptive"
+
+def stop(state):  # the confidence-0.99 count T for the best inlier share (sphere: k = 4)
+    w = len(state["best_inliers"]) / len(points)
+    needed = float("inf") if w <= 0 else (0.0 if w >= 1 else
+                                          np.log(0.01) / np.log1p(-w ** 4))
+    return adaptive and state["iteration"] + 1 >= needed
+
+center, radius, inliers = pyransac3d.Sphere().fit(points, thresh={threshold},
+                                                  maxIteration=1000, callback=stop)
+print(center, radius, len(inliers))
+"""
+
+REFERENCE = """
+import sys
+import numpy as np
+from jaxfit import reference
+points = np.load(sys.argv[1])
+center = 0.5 * (points.min(axis=0) + points.max(axis=0))
+scale = np.linalg.norm(points - center, axis=1).max()
+out = reference.ransac((points - center) / scale, "sphere", threshold={threshold} / scale,
+                       max_hypotheses=100_000, max_stall=20_000, seed=0)
+print(out["theta"], out["num_inliers"])
+"""
+
+# First call of one primitive in a fresh process, with JAX's compile-phase durations.
+FIRST_CALL = """
+import collections, json, sys, time
+import jax.monitoring
+phases = collections.Counter()
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **_: phases.update({{name.rsplit("/", 1)[-1]: secs}}))
+import jaxfit
+from jaxfit.synthetic import demo_cloud
+points, _, _ = demo_cloud(sys.argv[1], count=2000, outlier_ratio=0.3, seed=0)
+calls = []
+for _ in range(2):
+    start = time.perf_counter()
+    jaxfit.fit(points, sys.argv[1], key=0)
+    calls.append(time.perf_counter() - start)
+print(json.dumps({{"first": calls[0], "second": calls[1], **phases}}))
+"""
+
+
+def _env(cache: str | None) -> dict:
+    """The environment with jaxfit's cache in folder ``cache``, or off if None."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("JAXFIT_CACHE", "JAX_COMPILATION_CACHE"))}
+    if cache is None:
+        env["JAXFIT_CACHE"] = "0"
+    else:
+        env["JAXFIT_CACHE_DIR"] = cache
+    return env
+
+
+def wall(argv, env) -> tuple[float, str]:
+    """Seconds from launch to exit of a fresh process, and its output."""
+    start = time.perf_counter()
+    proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=600)
+    seconds = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise RuntimeError(f"{argv[:3]} failed:\n{proc.stderr}")
+    return seconds, proc.stdout
+
+
+def has_pyransac() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("pyransac3d") is not None
+
+
+def whole_process(cloud: Path, work: Path, repeats: int) -> dict[str, list[float]]:
+    """Each method's wall times over ``repeats`` turns; cold runs get an empty folder."""
+    py = sys.executable
+    script = {"jaxfit": JAXFIT_PY, "pyransac": PYRANSAC, "reference": REFERENCE}
+    script = {k: v.format(threshold=THRESHOLD) for k, v in script.items()}
+    cli = [py, "-m", "jaxfit", "fit", str(cloud), "--shape", "sphere",
+           "--threshold", str(THRESHOLD)]
+    times: dict[str, list[float]] = {}
+    for turn in range(repeats):
+        py_cache, cli_cache = str(work / f"py-{turn}"), str(work / f"cli-{turn}")
+        runs = [  # (label, argv, cache folder): a "second" run reuses its turn's "first"
+            ("jaxfit Python, first process (empty cache)", [py, "-c", script["jaxfit"],
+                                                            str(cloud)], py_cache),
+            ("jaxfit Python, second process (warm cache)", [py, "-c", script["jaxfit"],
+                                                            str(cloud)], py_cache),
+            ("jaxfit Python, cache off", [py, "-c", script["jaxfit"], str(cloud)], None),
+            ("jaxfit CLI, first process (empty cache)", cli, cli_cache),
+            ("jaxfit CLI, second process (warm cache)", cli, cli_cache),
+            ("NumPy reference loop", [py, "-c", script["reference"], str(cloud)], None),
+        ]
+        if has_pyransac():
+            runs += [("pyRANSAC-3D, 1000 iterations", [py, "-c", script["pyransac"],
+                                                       str(cloud), "fixed"], None),
+                     ("pyRANSAC-3D, adaptive stop", [py, "-c", script["pyransac"],
+                                                     str(cloud), "adaptive"], None)]
+        for label, argv, cache in runs:
+            seconds, _ = wall(argv, _env(cache))
+            times.setdefault(label, []).append(seconds)
+        print(f"turn {turn}: " + ", ".join(f"{k.split(',')[0]} {v[-1]:.2f}"
+                                           for k, v in times.items()), flush=True)
+    return times
+
+
+def first_calls(work: Path, repeats: int) -> list[dict]:
+    """Per primitive and cache state, medians of the first and second fit in a process."""
+    rows = []
+    for shape in SHAPES:
+        samples: dict[str, list[dict]] = {}
+        for turn in range(repeats):
+            folder = str(work / f"first-{shape}-{turn}")
+            for state, cache in (("cache off", None), ("first process", folder),
+                                 ("second process", folder)):
+                _, out = wall([sys.executable, "-c", FIRST_CALL.format(), shape], _env(cache))
+                samples.setdefault(state, []).append(json.loads(out.strip().splitlines()[-1]))
+        for state, runs in samples.items():
+            keys = sorted(set().union(*runs))
+            row = {"shape": shape, "cache": state, "runs": len(runs)}
+            row.update({k: statistics.median(r.get(k, 0.0) for r in runs) for k in keys})
+            rows.append(row)
+        print(f"{shape}: " + ", ".join(f"{r['cache']} {r['first']:.2f} s" for r in rows
+                                       if r["shape"] == shape), flush=True)
+    return rows
+
+
+# ----- tables and plot ----------------------------------------------------------------
+
+
+def process_table(times) -> str:
+    base = statistics.median(times.get("pyRANSAC-3D, 1000 iterations", [np.nan]))
+    lines = ["| process: load .npy, fit one sphere, print | median s | min s | max s "
+             "| ÷ pyRANSAC-3D (1000 it) |", "|---|---|---|---|---|"]
+    for label, t in times.items():
+        med = statistics.median(t)
+        lines.append(f"| {label} | {med:.2f} | {min(t):.2f} | {max(t):.2f} | {med / base:.2f} |")
+    return "\n".join(lines)
+
+
+def first_call_table(rows) -> str:
+    lines = ["| shape | cache | first fit s | second fit s | first − second s | trace s "
+             "| lower to MLIR s | XLA compile or cache load s | of which cache read s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['shape']} | {r['cache']} | {r['first']:.2f} | {r['second']:.3f} "
+            f"| {r['first'] - r['second']:.2f} | {r.get('jaxpr_trace_duration', 0):.2f} "
+            f"| {r.get('jaxpr_to_mlir_module_duration', 0):.2f} "
+            f"| {r.get('backend_compile_duration', 0):.2f} "
+            f"| {r.get('cache_retrieval_time_sec', 0):.2f} |")
+    return "\n".join(lines)
+
+
+def plot(times, rows, path):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is not installed: no plot")
+        return
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
+    labels = list(times)
+    meds = [statistics.median(times[k]) for k in labels]
+    left.barh(range(len(labels)), meds, color="tab:blue")
+    for i, k in enumerate(labels):
+        left.plot(times[k], [i] * len(times[k]), "k.", ms=4)
+    left.set_yticks(range(len(labels)), labels, fontsize=8)
+    left.invert_yaxis()
+    left.set_xlabel("whole-process wall time (s); dots: repeats")
+    left.set_title("load a 10k-point cloud, fit one sphere, print", fontsize=10)
+    states = ["cache off", "first process", "second process"]
+    width = 0.27
+    for j, state in enumerate(states):
+        vals = [next(r["first"] for r in rows if r["shape"] == s and r["cache"] == state)
+                for s in SHAPES]
+        right.bar(np.arange(len(SHAPES)) + (j - 1) * width, vals, width, label=state)
+    right.set_xticks(range(len(SHAPES)), SHAPES)
+    right.set_ylabel("first fit in the process (s)")
+    right.set_title("first-call time per primitive (2,000 points)", fontsize=10)
+    right.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    print(f"wrote {path}")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5, help="turns per method (5)")
+    parser.add_argument("--first-call-repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    work = Path(tempfile.mkdtemp(prefix="jaxfit-coldstart-"))
+    try:
+        points, _, _ = demo_cloud("sphere", count=10_000, outlier_ratio=0.3, seed=0)
+        cloud = work / "sphere.npy"
+        np.save(cloud, points)
+        if not has_pyransac():
+            print("pyRANSAC-3D is not installed (pip install '.[bench]'): its rows are skipped")
+        times = whole_process(cloud, work, args.repeats)
+        rows = first_calls(work, args.first_call_repeats)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    import jax
+
+    meta = {"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
+            "cpus": os.cpu_count(), "python": platform.python_version(),
+            "repeats": args.repeats, "first_call_repeats": args.first_call_repeats,
+            "cloud": "sphere, 10,000 points, 30 % outliers, .npy", "threshold": THRESHOLD}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "coldstart.json").write_text(json.dumps(
+        {"meta": meta, "whole_process_seconds": times, "first_call": rows}, indent=2))
+    md = "\n\n".join(["## Whole process (median of repeats)", process_table(times),
+                      "## First call per primitive (fresh process, medians)",
+                      first_call_table(rows)])
+    (RESULTS / "coldstart.md").write_text(md + "\n")
+    print(md)
+    plot(times, rows, RESULTS / "coldstart.png")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,333 @@
+"""Scene detection: several primitives in one cloud, found one after another.
+
+``detect(points)`` repeats: fit every candidate shape, keep the best-supported one, take
+its points out of the cloud, until no shape has ``min_inliers`` points of support. The
+support of a fitted model (Schnabel, Wahl & Klein 2007, "Efficient RANSAC for point-cloud
+shape detection") is the largest connected component of its *compatible* points: within
+the fit's distance threshold of the model, with an estimated normal within ``max_angle``
+of the model's surface normal there, and connected at a radius of ``connect`` times the
+cloud's median nearest-neighbour spacing. The normal test keeps a plane from taking the
+bottom rim of a cylinder standing on it; the connectivity keeps a plane from taking the
+coplanar tops of two separate boxes.
+
+The fits run on *groups*: the connected components of the points still unassigned (at
+the same radius). Objects resting on a floor fall apart into one group each once the
+floor is taken, so each shape is fitted to all groups in one ``fit_batch`` call (one
+compiled kernel for all of them), and each live group gives up one primitive per round.
+A group can only lose points to a primitive fitted inside it, so deciding the groups
+side by side gives the same result as deciding them one at a time.
+
+Choice per group (documented, and deliberately simple): the candidate with the largest
+support wins; but a more complex shape only beats a simpler one (earlier in ``shapes``)
+when its support is larger by more than ``tolerance`` (default 5 %), since a cone or a
+huge sphere can always imitate a plane's points and should not be reported for them.
+Ties in support go to the lower MSAC cost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import numpy as np
+
+from . import _checks
+from .normals import estimate_normals
+from .ransac import DEFAULT_THRESHOLD_FRACTION, fit
+from .shapes import Model
+
+DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")
+
+
+@dataclasses.dataclass(frozen=True)
+class Detection:
+    """One primitive found in a scene.
+
+    model : the fitted primitive (bounded, in the input's coordinates).
+    indices : (M,) sorted indices into the input points of its support (compatible,
+        connected inliers), the points it took out of the cloud.
+    cost : MSAC cost of the fit over its group's points.
+    round : detection round (0-based) in which it was taken.
+    """
+
+    model: Model
+    indices: np.ndarray
+    cost: float
+    round: int
+
+    @property
+    def shape(self) -> str:
+        return self.model.name
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """Outcome of ``detect``.
+
+    shapes : list of Detection, in the order they were taken.
+    unassigned : (U,) sorted indices of the points no detection took.
+    threshold : inlier distance used; spacing : median nearest-neighbour distance;
+    radius : connectivity radius (``connect * spacing``).
+    """
+
+    shapes: list[Detection]
+    unassigned: np.ndarray
+    threshold: float
+    spacing: float
+    radius: float
+
+    def labels(self) -> np.ndarray:
+        """(N,) index into ``shapes`` of each input point's detection, -1 if unassigned."""
+        n = sum(len(d.indices) for d in self.shapes) + len(self.unassigned)
+        out = np.full(n, -1)
+        for i, d in enumerate(self.shapes):
+            out[d.indices] = i
+        return out
+
+
+# ----- pure pieces --------------------------------------------------------------------
+
+
+def median_spacing(points: np.ndarray) -> float:
+    """Median distance from each point (N, 3) to its nearest other point."""
+    from scipy.spatial import cKDTree
+
+    return float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+
+
+def components(points: np.ndarray, radius: float) -> np.ndarray:
+    """Labels (N,) of the connected components of points (N, 3) joined within radius,
+    numbered by decreasing size (0 is the largest)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    by_size = np.argsort(-np.bincount(labels), kind="stable")
+    return np.argsort(by_size)[labels]
+
+
+def surface_normals(model: Model, points: np.ndarray, step: float) -> np.ndarray:
+    """Unit normals (N, 3) of the model's surface near points (N, 3): the gradient of its
+    signed residual by central differences (one formula for every primitive)."""
+    grad = np.stack([model.residual(points + step * e) - model.residual(points - step * e)
+                     for e in np.eye(3)], axis=1)
+    return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
+
+
+def support(model: Model, points, normals, threshold: float, cos_max: float,
+            radius: float) -> np.ndarray:
+    """Indices into points (N, 3) of the model's support: the largest connected
+    component of the points within threshold whose normals (N, 3) (any sign) are within
+    the angle arccos(cos_max) of the model's surface normal."""
+    near = np.flatnonzero(model.distance(points) < threshold)
+    if near.size == 0:
+        return near
+    along = surface_normals(model, points[near], 0.1 * threshold)
+    near = near[np.abs(np.einsum("ij,ij->i", along, normals[near])) >= cos_max]
+    if near.size == 0:
+        return near
+    return near[components(points[near], radius) == 0]
+
+
+def choose(sizes: np.ndarray, costs: np.ndarray, tolerance: float) -> int:
+    """Index of the winning candidate (shapes in order of complexity): the simplest whose
+    support sizes (S,) is within a factor (1 + tolerance) of the largest, ties by the
+    lower cost (S,)."""
+    contenders = np.flatnonzero(sizes * (1.0 + tolerance) >= sizes.max())
+    simplest = contenders[0]
+    tied = contenders[sizes[contenders] == sizes[simplest]]
+    return int(tied[np.argmin(costs[tied])]) if sizes[simplest] == sizes.max() else simplest
+
+
+# ----- the loop -----------------------------------------------------------------------
+
+
+def _check_options(points, shapes, min_inliers, threshold, normals, max_angle, connect,
+                   tolerance):
+    cloud = _checks.cloud(points)
+    classes = [_checks.model_class(s) for s in shapes]
+    if not classes:
+        raise ValueError("shapes is empty: give at least one shape to detect")
+    if len(set(classes)) != len(classes):
+        raise ValueError(f"shapes has repeated entries: {tuple(shapes)}")
+    smallest = max(cls.sample_size for cls in classes)
+    if min_inliers is None:
+        min_inliers = max(smallest, int(np.ceil(0.01 * len(cloud))))
+    min_inliers = _checks.positive(min_inliers, "min_inliers", integer=True)
+    if min_inliers < smallest:
+        raise ValueError(f"min_inliers must be at least {smallest} (the largest minimal "
+                         f"sample of {', '.join(c.name for c in classes)}), got {min_inliers}")
+    if len(cloud) < min_inliers:
+        raise ValueError(f"too few points: {len(cloud)} < min_inliers = {min_inliers}")
+    if threshold is None:
+        threshold = DEFAULT_THRESHOLD_FRACTION * np.linalg.norm(np.ptp(cloud, axis=0))
+    threshold = _checks.positive(threshold, "threshold")
+    max_angle = _checks.positive(max_angle, "max_angle")
+    if max_angle > 90:
+        raise ValueError(f"max_angle is in degrees and must be in (0, 90], got {max_angle}")
+    connect = _checks.positive(connect, "connect")
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or tolerance < 0:
+        raise ValueError(f"tolerance must be a non-negative number, got {tolerance!r}")
+    normals = _checks.normals_for(normals, cloud)
+    return cloud, classes, min_inliers, threshold, normals, max_angle, connect
+
+
+def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
+           threshold: float | None = None, normals=None, max_angle: float = 30.0,
+           connect: float = 4.0, tolerance: float = 0.05, fit_points: int = 1024,
+           settle: bool = True, key=0, progress: bool = False, **fit_options) -> Scene:
+    """Find several primitives in one cloud, one after another.
+
+    Parameters
+    ----------
+    points : (N, 3) array-like of finite coordinates.
+    shapes : candidate shapes, simplest first (the order breaks near-ties, see the
+        module docstring): names or model classes.
+    min_inliers : smallest support worth reporting; the loop stops when no candidate
+        reaches it. Default 1 % of the points (at least the largest minimal sample).
+    threshold : inlier distance. Default: 0.5 % of the whole cloud's bounding-box
+        diagonal, fixed for all rounds.
+    normals : optional (N, 3) normals (any sign); default ``estimate_normals(points,
+        orient=None)``. Used for the compatibility test and passed on to the fits.
+    max_angle : largest angle in degrees between a point's normal and the model's.
+    connect : connectivity radius in units of the median nearest-neighbour spacing.
+    tolerance : relative support margin a more complex shape needs to beat a simpler one.
+    key : int seed or JAX key; round r, shape s uses ``fold_in(key, r * len(shapes) + s)``.
+    progress : print one line per detected primitive.
+    **fit_options : passed to ``jaxfit.fit_batch`` (e.g. ``batch_size``,
+        ``min_hypotheses``, ``estimator``).
+
+    Returns
+    -------
+    Scene, with ``.shapes`` (list of Detection) and ``.unassigned`` (indices).
+    """
+    cloud, classes, min_inliers, threshold, normals, max_angle, connect = _check_options(
+        points, shapes, min_inliers, threshold, normals, max_angle, connect, tolerance)
+    fit_points = _checks.positive(fit_points, "fit_points", integer=True)
+    if normals is None:
+        normals = estimate_normals(cloud, orient=None)
+    key = _checks.prng_key(key)
+    spacing = median_spacing(cloud)
+    radius = connect * spacing
+    context = _Context(cloud, normals, threshold, float(np.cos(np.radians(max_angle))), radius,
+                       fit_points, tolerance, fit_options)
+    found: list[Detection] = []
+    live = np.ones(len(cloud), bool)  # unassigned points in groups that may still give
+    rnd = 0
+    while groups := _groups(cloud, np.flatnonzero(live), radius, min_inliers):
+        live[:] = False
+        for g, group in enumerate(groups):
+            start = time.perf_counter()
+            best = _best(context, classes, group, jax.random.fold_in(
+                jax.random.fold_in(key, rnd), g))
+            if best is None or len(best[1]) < min_inliers:
+                continue  # nothing left to find here: its points stay unassigned
+            model, taken, cost = best
+            found.append(Detection(model, np.sort(taken), cost, rnd))
+            live[np.setdiff1d(group, taken)] = True
+            if progress:
+                print(f"round {rnd}: {model.name} with {len(taken)} of {len(group)} points "
+                      f"({time.perf_counter() - start:.2f} s)")
+        rnd += 1
+    if settle and found:
+        found = _settled(found, cloud, threshold, radius)
+    taken = np.concatenate([d.indices for d in found]) if found else np.empty(0, int)
+    unassigned = np.setdiff1d(np.arange(len(cloud)), taken)
+    return Scene(found, unassigned, threshold, spacing, radius)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Context:
+    """What every fit of one ``detect`` call shares."""
+
+    cloud: np.ndarray  # (N, 3)
+    normals: np.ndarray  # (N, 3)
+    threshold: float
+    cos_max: float
+    radius: float
+    fit_points: int
+    tolerance: float
+    fit_options: dict
+
+
+def _groups(cloud, idx, radius, min_inliers):
+    """Index arrays into cloud of the connected components of cloud[idx] with at least
+    min_inliers points, largest first."""
+    if len(idx) < min_inliers:
+        return []
+    labels = components(cloud[idx], radius)
+    sizes = np.bincount(labels)
+    return [idx[labels == lab] for lab in np.flatnonzero(sizes >= min_inliers)]
+
+
+def _best(ctx: _Context, classes, group, key):
+    """The winning (model, support, cost) in one group, or None if no shape fits.
+
+    Shape s is fitted with ``fold_in(key, s)``. When a more complex shape wins, each
+    simpler one is refitted to the winner's support (key ``fold_in(key, S + s)``) and
+    takes its place if its own support is within the tolerance: a big sphere that won a
+    box's face with a few stray points is reported as the plane it imitates.
+    """
+    candidates = [_candidate(ctx, cls, group, group, jax.random.fold_in(key, s))
+                  for s, cls in enumerate(classes)]
+    sizes = np.array([len(c[1]) if c else 0 for c in candidates])
+    if not sizes.any():
+        return None
+    costs = np.array([c[2] if c else np.inf for c in candidates])
+    win = choose(sizes, costs, ctx.tolerance)
+    for s in range(win):
+        simpler = _candidate(ctx, classes[s], candidates[win][1], group,
+                             jax.random.fold_in(key, len(classes) + s))
+        if simpler and len(simpler[1]) * (1.0 + ctx.tolerance) >= sizes[win]:
+            return simpler
+    return candidates[win]
+
+
+def _settled(found, cloud, threshold, radius):
+    """Detections after a final assignment: every point within threshold of at least one
+    detection's model, and within radius of that detection's support, goes to the
+    nearest such model. This gives the points whose estimated normals an edge blurred
+    (they failed the normal test) to their surface, and splits the band where two
+    surfaces meet (a lying cylinder's underside within threshold of the floor) by
+    distance instead of by which was taken first. Other points stay unassigned."""
+    from scipy.spatial import cKDTree
+
+    dist = np.full((len(found), len(cloud)), np.inf)
+    for i, d in enumerate(found):
+        adjacent = cKDTree(cloud[d.indices]).query(cloud, distance_upper_bound=radius)[0]
+        dist[i] = np.where(np.isfinite(adjacent), d.model.distance(cloud), np.inf)
+    owner = np.argmin(dist, axis=0)
+    owner[dist[owner, np.arange(len(cloud))] >= threshold] = -1
+    return [dataclasses.replace(d, indices=np.flatnonzero(owner == i))
+            for i, d in enumerate(found)]
+
+
+def _fit_points(group, fit_points, key):
+    """At most fit_points indices of group, drawn without replacement from key: the
+    fit sees a subsample, its support is then measured on the whole group."""
+    if len(group) <= fit_points:
+        return group
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)))
+    return np.sort(rng.choice(group, fit_points, replace=False))
+
+
+def _candidate(ctx: _Context, cls, fit_on, group, key):
+    """(model, support indices into the cloud, cost) of shape cls fitted to (a subsample
+    of) the points cloud[fit_on], its support measured on cloud[group]; None if no model
+    could be fitted."""
+    sample = _fit_points(fit_on, ctx.fit_points, key)
+    if len(sample) < cls.sample_size:
+        return None
+    try:
+        result = fit(ctx.cloud[sample], cls, normals=ctx.normals[sample],
+                     threshold=ctx.threshold, key=key, **ctx.fit_options)
+    except _checks.FitError:
+        return None
+    local = support(result.model, ctx.cloud[group], ctx.normals[group], ctx.threshold,
+                    ctx.cos_max, ctx.radius)
+    return result.model, group[local], result.cost

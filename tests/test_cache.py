@@ -1,0 +1,105 @@
+"""The persistent compilation cache (jaxfit/_cache.py): each case runs fresh interpreters,
+because the cache is configured once, on import, for the whole process."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from jaxfit import _cache
+
+# One small fit; prints what JAX's monitoring saw. refine=False and one batch of 64
+# keep the compilation (the slow part of each process) short.
+SCRIPT = r"""
+import collections, json, time, warnings
+warnings.simplefilter("always")
+import jax.monitoring
+events = collections.Counter()
+jax.monitoring.register_event_listener(lambda name, **_: events.update([name]))
+import numpy as np
+import jaxfit
+from jaxfit.synthetic import demo_cloud
+points, _, _ = demo_cloud("plane", count=300, outlier_ratio=0.2, seed=0)
+start = time.perf_counter()
+result = jaxfit.fit(points, "plane", batch_size=64, max_hypotheses=64, refine=False, key=0)
+print(json.dumps({
+    "dir": jaxfit.compilation_cache_dir(),
+    "hits": events["/jax/compilation_cache/cache_hits"],
+    "misses": events["/jax/compilation_cache/cache_misses"],
+    "first_fit_s": time.perf_counter() - start,
+    "inliers": result.num_inliers,
+}))
+"""
+
+def run(env_update: dict[str, str | None]) -> tuple[dict, str]:
+    """Run SCRIPT in a fresh interpreter with the environment changed; (its JSON, stderr)."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("JAXFIT_CACHE", "JAX_COMPILATION_CACHE", "JAX_ENABLE_COMP"))}
+    env.update({k: v for k, v in env_update.items() if v is not None})
+    proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr
+
+
+def entries(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*-cache")) if folder.exists() else []
+
+
+def test_second_process_hits_the_cache(tmp_path):
+    folder = tmp_path / "cache"
+    first, _ = run({_cache.ENV_DIR: str(folder)})
+    written = entries(folder)
+    assert first["dir"] == str(folder)
+    assert first["misses"] > 0 and first["hits"] == 0
+    assert len(written) == first["misses"]  # every compiled executable was stored
+    second, _ = run({_cache.ENV_DIR: str(folder)})
+    assert second["hits"] == first["misses"] and second["misses"] == 0
+    assert entries(folder) == written  # nothing rewritten or added
+    assert second["inliers"] == first["inliers"]  # same result from the cached kernels
+
+
+def test_switch_off_writes_nothing(tmp_path):
+    folder = tmp_path / "cache"
+    out, _ = run({_cache.ENV_DIR: str(folder), _cache.ENV_SWITCH: "0"})
+    assert out["dir"] is None and out["hits"] == out["misses"] == 0
+    assert not folder.exists()
+
+
+def test_unwritable_folder_warns_and_fits(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")  # a folder below a file fails even for root
+    out, err = run({_cache.ENV_DIR: str(blocker / "cache")})
+    assert out["dir"] is None and out["inliers"] > 0
+    assert err.count("jaxfit: compilation cache disabled") == 1
+
+
+def test_a_folder_configured_for_jax_wins(tmp_path):
+    theirs, ours = tmp_path / "theirs", tmp_path / "ours"
+    out, _ = run({"JAX_COMPILATION_CACHE_DIR": str(theirs), _cache.ENV_DIR: str(ours)})
+    assert out["dir"] == str(theirs)
+    assert not ours.exists()
+
+
+def test_default_folder_follows_xdg(tmp_path):
+    env = {"XDG_CACHE_HOME": str(tmp_path)}
+    folder = _cache.wanted_dir(env, platform="linux")
+    assert folder.parent == tmp_path / "jaxfit" and folder.name.startswith("jax-")
+    assert _cache.wanted_dir({**env, _cache.ENV_DIR: "~/x"}) == Path("~/x").expanduser()
+
+
+@pytest.mark.parametrize("value", ["0", "false", "OFF", " no "])
+def test_switch_values(value):
+    assert _cache.wanted_dir({_cache.ENV_SWITCH: value}) is None
+
+
+def test_unusable_reports_a_reason(tmp_path):
+    assert _cache.unusable(tmp_path / "new" / "folder") is None
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert _cache.unusable(blocker / "sub") is not None

@@ -1,0 +1,98 @@
+"""jaxfit.detect on synthetic scenes of a floor with objects, its stopping rule, bad input.
+
+Every fit inside detect sees at most ``fit_points`` = 1024 points (bucket 1024), so each
+shape's kernel compiles once for the whole file."""
+
+import numpy as np
+import pytest
+
+import jaxfit
+from jaxfit.detect import choose, components
+from jaxfit.synthetic import scene
+
+SCENES = [  # 3 to 6 primitives: the floor plus objects touching it
+    (200, ["sphere", "lying_cylinder"]),
+    (302, ["cone", "cone", "cone"]),
+    (400, ["cone", "sphere", "cylinder", "lying_cylinder"]),
+    (501, ["cone", "cone", "cylinder", "lying_cylinder", "cylinder"]),
+]
+
+
+def _match(labels, models, result):
+    """Per true primitive: (type of the best-overlapping detection, precision, recall)."""
+    out = []
+    for t in range(len(models)):
+        members = np.flatnonzero(labels == t)
+        overlaps = [len(np.intersect1d(members, d.indices)) for d in result.shapes]
+        best = int(np.argmax(overlaps))
+        d = result.shapes[best]
+        out.append((d.shape, overlaps[best] / len(d.indices), overlaps[best] / len(members)))
+    return out
+
+
+@pytest.mark.parametrize(("seed", "objects"), SCENES)
+def test_every_primitive_is_recovered(seed, objects):
+    points, models, labels = scene(seed, objects=objects, count=3000)
+    result = jaxfit.detect(points, key=seed)
+    assert len(result.shapes) == len(models)
+    for model, (shape, precision, recall) in zip(models, _match(labels, models, result),
+                                                 strict=True):
+        assert shape == model.name
+        assert precision >= 0.9 and recall >= 0.9, (model.name, precision, recall)
+    # Every point is in at most one detection or unassigned.
+    assigned = np.concatenate([d.indices for d in result.shapes] + [result.unassigned])
+    np.testing.assert_array_equal(np.sort(assigned), np.arange(len(points)))
+    assert np.array_equal(result.labels()[result.unassigned], -np.ones(len(result.unassigned)))
+
+
+def test_min_inliers_stops_the_loop_and_the_key_fixes_the_result():
+    points, models, labels = scene(200, objects=["sphere", "lying_cylinder"], count=3000)
+    floor = int(np.sum(labels == 0))
+    only_floor = jaxfit.detect(points, min_inliers=floor - 200, key=1)
+    assert [d.shape for d in only_floor.shapes] == ["plane"]
+    assert len(only_floor.unassigned) >= len(points) - floor - 100
+    assert jaxfit.detect(points, min_inliers=len(points), key=1).shapes == []
+    again = jaxfit.detect(points, min_inliers=floor - 200, key=1)
+    np.testing.assert_array_equal(again.shapes[0].indices, only_floor.shapes[0].indices)
+
+
+def test_connected_components_and_choice():
+    line = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)]
+    points = np.vstack([line, line[:4] + [100.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(components(points, 1.5), [0] * 10 + [1] * 4)
+    # The simpler shape wins within the tolerance; outside it the larger one does; equal
+    # supports go to the lower cost.
+    assert choose(np.array([100, 104]), np.array([1.0, 0.5]), 0.05) == 0
+    assert choose(np.array([100, 110]), np.array([1.0, 0.5]), 0.05) == 1
+    assert choose(np.array([100, 100]), np.array([1.0, 0.5]), 0.0) == 1
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"shapes": ()}, "shapes is empty"),
+        ({"shapes": ("plane", "torus")}, "unknown shape"),
+        ({"shapes": ("plane", "plane")}, "repeated"),
+        ({"min_inliers": 2}, "min_inliers must be at least"),
+        ({"min_inliers": 0}, "min_inliers must be a positive integer"),
+        ({"min_inliers": 10_000}, "too few points"),
+        ({"threshold": -1.0}, "threshold must be a positive"),
+        ({"max_angle": 120.0}, "max_angle"),
+        ({"connect": 0}, "connect must be a positive"),
+        ({"tolerance": -0.1}, "tolerance"),
+        ({"normals": np.zeros((5, 3))}, "normals must match"),
+    ],
+)
+def test_bad_options_raise(kwargs, message):
+    points, _, _ = scene(0, objects=["sphere"], count=300)
+    with pytest.raises(ValueError, match=message):
+        jaxfit.detect(points, **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [(np.zeros((20, 2)), r"shape \(N, 3\)"), (np.full((20, 3), np.nan), "NaN")],
+)
+def test_bad_points_raise(points, message):
+    with pytest.raises(ValueError, match=message):
+        jaxfit.detect(points)
