@@ -191,10 +191,11 @@ def estimate_batch(cls: type[Model], samples, support, normals=None,
 
 def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold,
                 normals=None, estimator: str = "thesis", top: int | None = None,
-                n_sample=None):
+                n_sample=None, limits=None):
     """The one kernel: H hypotheses from ``key`` scored on padded points (B, 3) (with
     their normals (B, 3) for the oriented estimator). Samples are drawn among the first
-    ``n_sample`` points (default all n_valid).
+    ``n_sample`` points (default all n_valid). Hypotheses outside the user's ``limits``
+    (6,) (see ``Model.within``) are invalid.
     Returns the best (theta (P,), cost, inlier count) and the number of valid samples;
     with ``top`` the ``top`` best, best first: thetas (top, P), costs (top,), counts (top,).
     """
@@ -206,6 +207,8 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     thetas, valid = estimate_batch(cls, points[idx], support,
                                    normals[idx] if est.uses_normals else None, estimator)
     valid &= distinct
+    if limits is not None:
+        valid &= jax.vmap(cls.within, in_axes=(0, None))(thetas, limits)
     costs, counts = score(cls, thetas, valid, points, n_valid, threshold)
     if top is None:
         best = jnp.argmin(costs)
@@ -225,7 +228,7 @@ def _msac(cls, theta, points, n_valid, threshold):
 
 @partial(jax.jit, static_argnames=("cls", "max_rounds", "steps"))
 def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds: int = 20,
-                 steps: int = 10):
+                 steps: int = 10, limits=None):
     """Local optimisation of a hypothesis theta (P,) on padded points (B, 3).
 
     Each round takes the current inliers (within LO_WIDEN thresholds) and runs ``steps``
@@ -233,7 +236,8 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
     ``cls.canonicalize``). Rounds go on while they lower the MSAC cost over all points
     (at most ``max_rounds``), so the inlier set can grow from a rough hypothesis to the
     whole surface, and refinement never makes the model worse by the loop's own measure.
-    The steps see at most LO_POINTS points, evenly strided over the cloud.
+    The steps see at most LO_POINTS points, evenly strided over the cloud. A step that
+    would leave the user's ``limits`` (6,) (``Model.within``) is refused.
     Returns the refined theta, its MSAC cost and inlier count.
     """
     rows = jnp.arange(min(points.shape[0], LO_POINTS))
@@ -252,6 +256,8 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
         candidate = cls.canonicalize(th + jnp.linalg.solve(normal + damping, -(jac.T @ r)))
         new_sse = jnp.sum(resid(candidate) ** 2)
         better = jnp.isfinite(new_sse) & (new_sse < sse) & jnp.all(jnp.isfinite(candidate))
+        if limits is not None:
+            better &= cls.within(candidate, limits)
         return (jnp.where(better, candidate, th), jnp.where(better, lam * 0.3, lam * 10.0),
                 jnp.where(better, new_sse, sse), weight)
 
@@ -294,17 +300,18 @@ def _padded(rows: np.ndarray, dtype, size: int | None = None):
 
 
 def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sample,
-                     cloud_keys, threshold, batch):
+                     cloud_keys, threshold, limits, batch):
     """``batch_best`` for every cloud: points (C, B, 3), normals (C, B, 3) or None,
-    n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,); batch b of cloud c
-    uses fold_in(cloud_keys[c], b)."""
+    n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), limits (C, 6);
+    batch b of cloud c uses fold_in(cloud_keys[c], b)."""
 
     def one(args):
-        p, nrm, n, m, k, t = args
+        p, nrm, n, m, k, t, lim = args
         return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
-                           estimator, LO_STARTS, m)
+                           estimator, LO_STARTS, m, lim)
 
-    return jax.lax.map(one, (points, normals, n_valid, n_sample, cloud_keys, threshold),
+    return jax.lax.map(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,
+                             limits),
                        batch_size=_group(points.shape[0], CHUNK * batch_size))
 
 
@@ -327,13 +334,18 @@ def _group(clouds: int, elements: int) -> int:
 
 
 @partial(jax.jit, static_argnames=("cls",))
-def _refine_many(cls, thetas, points, n_valid, threshold):
+def _refine_many(cls, thetas, points, n_valid, threshold, limits):
     """refine_theta for each cloud's LO_STARTS hypotheses thetas (C, S, P); returns the
     best refined theta (C, P), its cost (C,) and inlier count (C,) per cloud."""
-    starts = jax.vmap(partial(refine_theta, cls), in_axes=(0, None, None, None))
+
+    def refine(theta, p, n, t, lim):
+        return refine_theta(cls, theta, p, n, t, limits=lim)
+
+    starts = jax.vmap(refine, in_axes=(0, None, None, None, None))
     # A while_loop under vmap runs until its slowest member stops: small groups keep
     # one slow cloud from holding all the others for max_rounds.
-    theta, cost, count = jax.lax.map(lambda a: starts(*a), (thetas, points, n_valid, threshold),
+    theta, cost, count = jax.lax.map(lambda a: starts(*a),
+                                     (thetas, points, n_valid, threshold, limits),
                                      batch_size=_group(points.shape[0], points.shape[1] * 64))
     best = jnp.argmin(cost, axis=1)[:, None]
     pick = lambda a: jnp.take_along_axis(a, best.reshape(best.shape + (1,) * (a.ndim - 2)),  # noqa: E731
@@ -351,10 +363,15 @@ class _Cloud:
     center: np.ndarray
     scale: float
     threshold: float  # in the cloud's units
+    limits: np.ndarray  # (6,) the user's bounds, see Model.within, in the cloud's units
 
     @property
     def unit(self):
         return (self.points - self.center) / self.scale
+
+    def unit_limits(self):
+        """The limits in the normalised frame: radii scale, directions do not."""
+        return np.concatenate([self.limits[:2] / self.scale, self.limits[2:]])
 
     def kernel_rows(self):
         """Unit points (N, 3) with the pool first, the pool's normals (M, 3) or None,
@@ -371,7 +388,41 @@ def _normals_key(key, cloud: int):
     return jax.random.fold_in(jax.random.fold_in(key, cloud), 0x6E6F726D)
 
 
-def _prepare(points, cls, normals, threshold, est, key) -> _Cloud:
+def limits_for(cls: type[Model], radius_range=None, axis_prior=None) -> np.ndarray:
+    """The user's bounds as the (6,) vector ``Model.within`` reads, with clear errors.
+
+    radius_range : None or (low, high), 0 <= low < high (sphere, cylinder).
+    axis_prior : None or (direction (3,), max_angle_deg in (0, 90]): the axis (the
+        normal, for a plane) within that angle of the direction, either sign (plane,
+        cylinder, cone).
+    """
+    limits = np.array([0.0, np.inf, 0.0, 0.0, 1.0, 0.0])
+    if radius_range is not None:
+        if cls.radius_index is None:
+            raise ValueError(f"radius_range does not apply to a {cls.name} (sphere, cylinder)")
+        low, high = (float(v) for v in radius_range)
+        if not 0 <= low < high:
+            raise ValueError(f"radius_range must be (low, high) with 0 <= low < high, got "
+                             f"{radius_range!r}")
+        limits[:2] = low, high
+    if axis_prior is not None:
+        if cls.axis_index is None:
+            raise ValueError(f"axis_prior does not apply to a {cls.name} "
+                             "(plane, cylinder, cone)")
+        direction, angle = axis_prior
+        direction = np.asarray(direction, np.float64).reshape(-1)
+        length = np.linalg.norm(direction) if direction.shape == (3,) else np.nan
+        if not (np.isfinite(length) and length > 0):
+            raise ValueError(f"axis_prior direction must be a non-zero finite 3-vector, got "
+                             f"{axis_prior[0]!r}")
+        if not 0 < float(angle) <= 90:
+            raise ValueError(f"axis_prior angle must be in (0, 90] degrees, got {angle!r}")
+        limits[2:5] = direction / length
+        limits[5] = np.cos(np.radians(float(angle)))
+    return limits
+
+
+def _prepare(points, cls, normals, threshold, est, key, limits) -> _Cloud:
     cloud = _checks.points_for(points, cls)
     normals = _checks.normals_for(normals, cloud)
     center, scale = _normalise(cloud)
@@ -390,7 +441,7 @@ def _prepare(points, cls, normals, threshold, est, key) -> _Cloud:
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
         normals = normals_at(cloud, np.arange(len(cloud)) if pool is None else pool,
                              k=min(16, len(cloud)))
-    return _Cloud(cloud, normals, pool, center, scale, threshold)
+    return _Cloud(cloud, normals, pool, center, scale, threshold, limits)
 
 
 def fit(
@@ -406,6 +457,8 @@ def fit(
     min_hypotheses: int | None = None,
     refine: bool = True,
     estimator: str | None = None,
+    radius_range=None,
+    axis_prior=None,
     key=0,
 ) -> FitResult:
     """Fit one primitive to a point cloud with batched RANSAC and MSAC scoring.
@@ -436,6 +489,11 @@ def fit(
         cone 3; plane and box have no oriented estimator and use the thesis's). Default:
         the best measured per shape, ``Model.default_estimator``: oriented for the
         cylinder and cone, thesis for the others.
+    radius_range : optional (low, high) in the points' units (sphere, cylinder): every
+        hypothesis outside it is discarded and refinement never leaves it.
+    axis_prior : optional (direction (3,), max_angle_deg): the axis (a plane's normal)
+        must stay within that angle of the direction, either sign (plane, cylinder,
+        cone), before and after refinement.
     key : int seed or JAX PRNG key. ``fit(points, ...)`` equals
         ``fit_batch([points], ...)[0]``: batch b uses ``fold_in(fold_in(key, 0), b)``.
 
@@ -447,7 +505,7 @@ def fit(
         [points], shape, normals=None if normals is None else [normals], thresholds=threshold,
         confidence=confidence, max_hypotheses=max_hypotheses, batch_size=batch_size,
         max_stall=max_stall, min_hypotheses=min_hypotheses, refine=refine,
-        estimator=estimator, key=key,
+        estimator=estimator, radius_range=radius_range, axis_prior=axis_prior, key=key,
     )[0]
 
 
@@ -464,6 +522,8 @@ def fit_batch(
     min_hypotheses: int | None = None,
     refine: bool = True,
     estimator: str | None = None,
+    radius_range=None,
+    axis_prior=None,
     key=0,
     skip_failures: bool = False,
 ) -> list[FitResult | None]:
@@ -500,11 +560,12 @@ def fit_batch(
     if len(thresholds) != len(clouds):
         raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
     key = _checks.prng_key(key)
+    limits = limits_for(cls, radius_range, axis_prior)
     prepared = []
     for i, points in enumerate(clouds):
         try:
             prepared.append(_prepare(points, cls, None if normals is None else normals[i],
-                                     thresholds[i], est, _normals_key(key, i)))
+                                     thresholds[i], est, _normals_key(key, i), limits))
         except ValueError as err:
             raise type(err)(f"cloud {i}: {err}" if len(clouds) > 1 else str(err)) from None
     confidence = _checks.probability(confidence, "confidence")
@@ -567,6 +628,7 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
     unit_threshold = put(np.asarray([clouds[i].threshold / clouds[i].scale for i in order],
                                     dtype))
     cloud_keys = put(_fold_in_each(key, jnp.arange(slots)))
+    limits = put(np.stack([clouds[i].unit_limits() for i in order]).astype(dtype))
 
     best_theta = np.full((slots, cls.num_params), np.nan)
     best_cost, best_raw = np.full(slots, np.inf), np.full(slots, np.inf)
@@ -578,7 +640,8 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
     batch = 0
     while active.any() and batch * batch_size < max_hypotheses:
         theta, cost, found, _ = _batch_best_many(cls, batch_size, est.name, padded, normals, n,
-                                                 n_sample, cloud_keys, unit_threshold, batch)
+                                                 n_sample, cloud_keys, unit_threshold, limits,
+                                                 batch)
         batch += 1
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
@@ -587,7 +650,7 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
         improved = active & (raw < best_raw)
         best_raw = np.where(improved, raw, best_raw)
         if refine and improved.any():
-            theta, cost, found = _refine_many(cls, theta, padded, n, unit_threshold)
+            theta, cost, found = _refine_many(cls, theta, padded, n, unit_threshold, limits)
         else:
             theta, cost, found = theta[:, 0], cost[:, 0], found[:, 0]
         cost, found, theta = np.asarray(cost, np.float64), np.asarray(found), np.asarray(theta)

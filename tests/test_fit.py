@@ -242,3 +242,22 @@ def test_fit_batch_shards_clouds_over_forced_host_devices():
     here = jaxfit.fit_batch(clouds, "sphere", key=1, batch_size=256)
     radii = [float(r) for r in out.stdout.split()]
     assert np.allclose(radii, [r.model.radius for r in here], rtol=1e-5)
+
+
+def test_user_bounds_hold_before_and_after_refinement():
+    points, true, _ = demo_cloud("cylinder", seed=2)
+    small = jaxfit.fit(points, "cylinder", radius_range=(0.0, 0.5 * true.radius))
+    assert small.model.radius <= 0.5 * true.radius
+    # a prior 60 deg off the true axis, 20 deg wide: the fit stays inside it
+    off = np.cross(true.axis, [1.0, 0.0, 0.0])
+    off /= np.linalg.norm(off)
+    prior = np.cos(np.radians(60)) * true.axis + np.sin(np.radians(60)) * off
+    held = jaxfit.fit(points, "cylinder", axis_prior=(prior, 20))
+    assert axis_angle_deg(held.model.axis, prior) <= 20 + 1e-6
+    right = jaxfit.fit(points, "cylinder", axis_prior=(true.axis, 5),
+                       radius_range=(0.9 * true.radius, 1.1 * true.radius))
+    assert axis_angle_deg(right.model.axis, true.axis) < 0.5
+    assert abs(right.model.radius - true.radius) < 0.01 * true.radius
+    # the cone's half-angle stays in (0, pi/2) through refinement
+    cone = jaxfit.fit(demo_cloud("cone", seed=2)[0], "cone")
+    assert 0 < cone.model.half_angle < np.pi / 2

@@ -45,6 +45,7 @@ class Cone(Model):
     sample_size: ClassVar[int] = 4
     oriented_sample_size: ClassVar[int] = 3
     default_estimator: ClassVar[str] = "oriented"
+    axis_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 7
     min_hypotheses: ClassVar[int] = 16384  # see Model.min_hypotheses
     field_specs: ClassVar = {
@@ -101,8 +102,10 @@ class Cone(Model):
 
     @staticmethod
     def canonicalize(theta):
+        # A refinement step must not leave (0, pi/2): past either end it is no cone.
         axis, _ = g.safe_normalize(theta[3:6])
-        return jnp.concatenate([theta[:3], axis, theta[6:]])
+        angle = jnp.clip(theta[6:], MIN_ANGLE, jnp.pi / 2 - MIN_ANGLE)
+        return jnp.concatenate([theta[:3], axis, angle])
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):

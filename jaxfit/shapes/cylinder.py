@@ -38,6 +38,8 @@ class Cylinder(Model):
     sample_size: ClassVar[int] = 3
     oriented_sample_size: ClassVar[int] = 2
     default_estimator: ClassVar[str] = "oriented"
+    radius_index: ClassVar[int] = 6
+    axis_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 7
     min_hypotheses: ClassVar[int] = 8192  # see Model.min_hypotheses
     field_specs: ClassVar = {

@@ -31,6 +31,7 @@ class Plane(Model):
 
     name: ClassVar[str] = "plane"
     sample_size: ClassVar[int] = 3
+    axis_index: ClassVar[int] = 0  # the normal
     num_params: ClassVar[int] = 4
     field_specs: ClassVar = {
         "normal": ((3,), _INVARIANT),

@@ -29,6 +29,7 @@ class Sphere(Model):
     name: ClassVar[str] = "sphere"
     sample_size: ClassVar[int] = 4
     oriented_sample_size: ClassVar[int] = 2
+    radius_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 4
     field_specs: ClassVar = {"center": ((3,), _POINT), "radius": ((), _LENGTH)}
 
