@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxfit.preview import pyplot
 from jaxfit.synthetic import demo_cloud
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -212,14 +213,7 @@ def first_call_table(rows) -> str:
 
 
 def plot(times, rows, path):
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed: no plot")
-        return
+    plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.2))
     labels = list(times)
     meds = [statistics.median(times[k]) for k in labels]

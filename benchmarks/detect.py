@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 import jaxfit
+from jaxfit.preview import pyplot
 from jaxfit.synthetic import scene
 
 OUT = Path(__file__).resolve().parent / "results" / "detect"
@@ -89,10 +90,7 @@ def _palette(n):
 
 def draw(points, truth_labels, labels, names, title, path):
     """Two 3-D scatter plots side by side: truth and detection (grey: unassigned)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig = plt.figure(figsize=(12, 6))
     for col, (lab, heading) in enumerate([(truth_labels, "ground truth"),

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxfit import evaluate
+from jaxfit.preview import pyplot
 
 SHAPES = ("cylinder", "cone", "sphere")
 SCENARIOS = ("RN", "RNIM", "SN", "SNIM")
@@ -74,10 +75,7 @@ def markdown(summary: list[dict]) -> str:
 
 
 def plot(summary: list[dict], path: Path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(len(SHAPES), len(SCENARIOS), figsize=(13, 8.5), squeeze=False)
     for row, shape in enumerate(SHAPES):

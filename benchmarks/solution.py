@@ -37,6 +37,7 @@ import numpy as np
 
 import jaxfit
 from jaxfit import ransac, reference
+from jaxfit.preview import pyplot
 from jaxfit.shapes import REGISTRY
 from jaxfit.synthetic import demo_cloud
 
@@ -327,14 +328,7 @@ def refine_table(rows) -> str:
 
 def plot(rows, path):
     """Time to solution against N: one panel per (outlier share, shape), log-log."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed: no plot")
-        return
+    plt = pyplot()
     shapes = list(dict.fromkeys(r["shape"] for r in rows))
     levels = list(dict.fromkeys(r["outliers"] for r in rows))
     fig, axes = plt.subplots(len(levels), len(shapes), figsize=(3.4 * len(shapes),

@@ -27,6 +27,7 @@ import numpy as np
 
 import jaxfit
 from jaxfit import ransac, reference
+from jaxfit.preview import pyplot
 from jaxfit.shapes import REGISTRY
 from jaxfit.synthetic import demo_cloud
 
@@ -117,14 +118,7 @@ def table(rows) -> str:
 
 def plot(rows, path):
     """Evaluations per second against N, one panel per primitive, log-log."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed: no plot")
-        return
+    plt = pyplot()
     shapes = list(dict.fromkeys(r["shape"] for r in rows))
     fig, axes = plt.subplots(1, len(shapes), figsize=(3.2 * len(shapes), 3.2), sharey=True)
     series = [("jaxfit_evals_per_s", "jaxfit kernel"),

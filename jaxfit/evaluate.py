@@ -153,10 +153,9 @@ def markdown(summary) -> str:
 
 def plot(summary, path: Path, shape: str):
     """Medians of each measure against the noise level, one line per scenario."""
-    import matplotlib
+    from .preview import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     shown = MEASURES[shape] + COMMON
     mine = [s for s in summary if s["shape"] == shape]

@@ -27,12 +27,20 @@ def _shaded(mesh, rgba):
     return np.clip(shade[:, None] * colour, 0, 1)
 
 
-def render(decomposition, path, *, size=(11, 5.5), dpi=110):
-    """Write a PNG: left the points coloured by part, right the primitives by type."""
+def pyplot():
+    """matplotlib.pyplot on the headless Agg backend (imported here: it is slow to import
+    and only pictures need it)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def render(decomposition, path, *, size=(11, 5.5), dpi=110):
+    """Write a PNG: left the points coloured by part, right the primitives by type."""
+    plt = pyplot()
     from matplotlib.patches import Patch
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
