@@ -157,9 +157,14 @@ def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     return idx, distinct
 
 
-def score(cls: type[Model], thetas, valid, points, n_valid, threshold):
+def score(cls: type[Model], thetas, valid, points, n_valid, threshold, counts: bool = True):
     """MSAC costs (H,) and inlier counts (H,) of hypotheses thetas (H, P) over the first
-    n_valid of points (B, 3), B a multiple of CHUNK. Invalid hypotheses cost +inf."""
+    n_valid of points (B, 3), B a multiple of CHUNK. Invalid hypotheses cost +inf.
+
+    With ``counts=False`` only the costs are computed: the count's second reduction per
+    step cost ~3x in the scan (sphere, H = 4096: 0.6 -> 1.9-3.7 billion evaluations/s
+    measured side by side), so the kernel counts inliers for its few best only.
+    """
     theta_t = thetas.T  # (P, H): hypotheses on the fast axis
     t2 = threshold * threshold
     chunks = points.reshape(-1, CHUNK, 3)
@@ -172,12 +177,14 @@ def score(cls: type[Model], thetas, valid, points, n_valid, threshold):
         r = cls.theta_residual(theta_t, (chunk[:, 0:1], chunk[:, 1:2], chunk[:, 2:3]), jnp)
         r2 = r * r  # (C, H)
         cost = cost + jnp.sum(jnp.where(live, jnp.minimum(r2, t2), 0.0), axis=0)
-        count = count + jnp.sum(live & (r2 < t2), axis=0, dtype=jnp.int32)
+        if counts:
+            count = count + jnp.sum(live & (r2 < t2), axis=0, dtype=jnp.int32)
         return (cost, count), None
 
     zero = jnp.zeros(thetas.shape[0], points.dtype)
     (cost, count), _ = jax.lax.scan(step, (zero, zero.astype(jnp.int32)), (chunks, starts))
-    return jnp.where(valid, cost, jnp.inf), jnp.where(valid, count, 0)
+    cost = jnp.where(valid, cost, jnp.inf)
+    return (cost, jnp.where(valid, count, 0)) if counts else cost
 
 
 def estimate_batch(cls: type[Model], samples, support, normals=None,
@@ -209,12 +216,12 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     valid &= distinct
     if limits is not None:
         valid &= jax.vmap(cls.within, in_axes=(0, None))(thetas, limits)
-    costs, counts = score(cls, thetas, valid, points, n_valid, threshold)
+    costs = score(cls, thetas, valid, points, n_valid, threshold, counts=False)
+    _, best = jax.lax.top_k(-costs, 1 if top is None else top)
+    _, counts = score(cls, thetas[best], valid[best], points, n_valid, threshold)
     if top is None:
-        best = jnp.argmin(costs)
-        return thetas[best], costs[best], counts[best], jnp.sum(valid)
-    _, best = jax.lax.top_k(-costs, top)
-    return thetas[best], costs[best], counts[best], jnp.sum(valid)
+        return thetas[best[0]], costs[best[0]], counts[0], jnp.sum(valid)
+    return thetas[best], costs[best], counts, jnp.sum(valid)
 
 
 batch_best = _jit_tuned(_batch_best, static_argnames=("cls", "batch_size", "estimator"))
