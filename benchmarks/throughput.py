@@ -1,10 +1,12 @@
 """Point-hypothesis evaluations per second: jaxfit's kernel against jaxfit.reference.
 
-For each primitive and N in {1e3, 1e4, 1e5}, the same H hypotheses are sampled,
+For each primitive, N in {1e3, 1e4, 1e5, 1e6} and H in {1024, 4096}, the same H
+hypotheses are sampled,
 estimated and MSAC-scored three ways, side by side in one run:
 - jaxfit: one call of the jitted kernel (sample -> vmap'd estimate -> chunked scoring),
   warm (compiled beforehand), median of several calls;
-- reference, vectorised: NumPy estimates, then all H hypotheses scored at once in blocks;
+- reference, vectorised: NumPy estimates, then the hypotheses scored at once in blocks
+  (at most 1e8 evaluations timed, reported per evaluation);
 - reference, one at a time: the thesis's loop, estimate then score per hypothesis
   (timed on a subset of the hypotheses and reported per evaluation).
 
@@ -43,7 +45,8 @@ def _seconds(fn, repeats):
     return statistics.median(times)
 
 
-def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int = 0) -> dict:
+def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int = 0,
+            vec_hypotheses: int | None = None) -> dict:
     cls = REGISTRY[name]
     points, _, _ = demo_cloud(name, count=n, seed=seed)
     center, scale = ransac._normalise(points)
@@ -70,11 +73,13 @@ def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int 
     samples = unit[rng.integers(0, n, (hypotheses, cls.sample_size))]
     support = unit[rng.integers(0, n, ransac.SUPPORT)]
 
+    vec = vec_hypotheses or hypotheses
+
     def vectorised():
-        thetas, valid = reference.estimate_batch(name, samples, support)
+        thetas, valid = reference.estimate_batch(name, samples[:vec], support)
         reference.score_batch(name, thetas, valid, unit, threshold)
 
-    t_vec = _seconds(vectorised, 1)
+    t_vec = _seconds(vectorised, 1) * hypotheses / vec
 
     def one_at_a_time():
         for sample in samples[:loop_hypotheses]:
@@ -117,10 +122,15 @@ def table(rows) -> str:
 
 
 def plot(rows, path):
-    """Evaluations per second against N, one panel per primitive, log-log."""
+    """Evaluations per second against N, one panel per primitive, log-log, at the
+    largest H measured."""
+    largest = max(r["H"] for r in rows)
+    rows = [r for r in rows if r["H"] == largest]
     plt = pyplot()
     shapes = list(dict.fromkeys(r["shape"] for r in rows))
-    fig, axes = plt.subplots(1, len(shapes), figsize=(3.2 * len(shapes), 3.2), sharey=True)
+    fig, axes = plt.subplots(1, len(shapes), figsize=(3.2 * len(shapes), 3.2), sharey=True,
+                             squeeze=False)
+    axes = axes[0]
     series = [("jaxfit_evals_per_s", "jaxfit kernel"),
               ("numpy_vectorised_evals_per_s", "NumPy vectorised"),
               ("numpy_loop_evals_per_s", "NumPy one at a time")]
@@ -142,16 +152,20 @@ def plot(rows, path):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N up to 1e4 only")
-    parser.add_argument("--hypotheses", type=int, default=1024)
+    parser.add_argument("--hypotheses", type=int, nargs="+", default=[1024, 4096])
+    parser.add_argument("--shapes", nargs="+", default=["plane", "sphere", "cylinder", "cone",
+                                                        "box"])
     args = parser.parse_args(argv)
-    sizes = [1_000, 10_000] if args.quick else [1_000, 10_000, 100_000]
+    sizes = [1_000, 10_000] if args.quick else [1_000, 10_000, 100_000, 1_000_000]
     rows = []
-    for name in ["plane", "sphere", "cylinder", "cone", "box"]:
-        for n in sizes:
-            loop = max(16, min(args.hypotheses, 2_000_000 // n))
-            row = measure(name, n, args.hypotheses, loop)
-            rows.append(row)
-            print(table([row]).splitlines()[-1], flush=True)
+    for name in args.shapes:
+        for hypotheses in args.hypotheses:
+            for n in sizes:
+                loop = max(16, min(hypotheses, 2_000_000 // n))
+                vec = max(16, min(hypotheses, 100_000_000 // n))
+                row = measure(name, n, hypotheses, loop, vec_hypotheses=vec)
+                rows.append(row)
+                print(table([row]).splitlines()[-1], flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     meta = {"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
             "devices": [str(d) for d in jax.devices()], "cpus": __import__("os").cpu_count()}
