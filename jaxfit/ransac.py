@@ -160,9 +160,15 @@ def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     return idx, distinct
 
 
-def score(cls: type[Model], thetas, valid, points, n_valid, threshold, counts: bool = True):
+def score(cls: type[Model], thetas, valid, points, n_valid, threshold, counts: bool = True,
+          gate=None):
     """MSAC costs (H,) and inlier counts (H,) of hypotheses thetas (H, P) over the first
     n_valid of points (B, 3), B a multiple of CHUNK. Invalid hypotheses cost +inf.
+
+    ``gate`` = (normals (B, 3), min_cos): a point also needs |cos| >= min_cos between its
+    normal and the surface's to count as an inlier (else it costs threshold^2). The
+    surface normal comes for free as the residual's derivative along the point's normal
+    (one JVP; every residual here is a distance, whose gradient has unit length).
 
     With ``counts=False`` only the costs are computed: the count's second reduction per
     step cost ~3x in the scan (sphere, H = 4096: 0.6 -> 1.9-3.7 billion evaluations/s
@@ -172,20 +178,28 @@ def score(cls: type[Model], thetas, valid, points, n_valid, threshold, counts: b
     t2 = threshold * threshold
     chunks = points.reshape(-1, CHUNK, 3)
     starts = jnp.arange(chunks.shape[0]) * CHUNK
+    tangents = chunks if gate is None else gate[0].reshape(-1, CHUNK, 3)
 
     def step(carry, xs):
         cost, count = carry
-        chunk, start = xs
+        chunk, tangent, start = xs
         live = ((start + jnp.arange(CHUNK)) < n_valid)[:, None]  # (C, 1)
-        r = cls.theta_residual(theta_t, (chunk[:, 0:1], chunk[:, 1:2], chunk[:, 2:3]), jnp)
-        r2 = r * r  # (C, H)
+        q = (chunk[:, 0:1], chunk[:, 1:2], chunk[:, 2:3])
+        if gate is None:
+            r = cls.theta_residual(theta_t, q, jnp)
+            r2 = r * r  # (C, H)
+        else:
+            m = (tangent[:, 0:1], tangent[:, 1:2], tangent[:, 2:3])
+            r, slope = jax.jvp(lambda *c: cls.theta_residual(theta_t, c, jnp), q, m)
+            r2 = jnp.where(jnp.abs(slope) >= gate[1], r * r, t2)
         cost = cost + jnp.sum(jnp.where(live, jnp.minimum(r2, t2), 0.0), axis=0)
         if counts:
             count = count + jnp.sum(live & (r2 < t2), axis=0, dtype=jnp.int32)
         return (cost, count), None
 
     zero = jnp.zeros(thetas.shape[0], points.dtype)
-    (cost, count), _ = jax.lax.scan(step, (zero, zero.astype(jnp.int32)), (chunks, starts))
+    (cost, count), _ = jax.lax.scan(step, (zero, zero.astype(jnp.int32)),
+                                    (chunks, tangents, starts))
     cost = jnp.where(valid, cost, jnp.inf)
     return (cost, jnp.where(valid, count, 0)) if counts else cost
 
@@ -201,11 +215,12 @@ def estimate_batch(cls: type[Model], samples, support, normals=None,
 
 def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold,
                 normals=None, estimator: str = "thesis", top: int | None = None,
-                n_sample=None, limits=None):
+                n_sample=None, limits=None, gated: bool = False):
     """The one kernel: H hypotheses from ``key`` scored on padded points (B, 3) (with
     their normals (B, 3) for the oriented estimator). Samples are drawn among the first
     ``n_sample`` points (default all n_valid). Hypotheses outside the user's ``limits``
-    (6,) (see ``Model.within``) are invalid.
+    (7,) (see ``Model.within``) are invalid; ``gated``: scores gate on normals with
+    min_cos = limits[6] (see ``score``).
     Returns the best (theta (P,), cost, inlier count) and the number of valid samples;
     with ``top`` the ``top`` best, best first: thetas (top, P), costs (top,), counts (top,).
     """
@@ -219,26 +234,29 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     valid &= distinct
     if limits is not None:
         valid &= jax.vmap(cls.within, in_axes=(0, None))(thetas, limits)
-    costs = score(cls, thetas, valid, points, n_valid, threshold, counts=False)
+    gate = (normals, limits[6]) if gated else None
+    costs = score(cls, thetas, valid, points, n_valid, threshold, counts=False, gate=gate)
     _, best = jax.lax.top_k(-costs, 1 if top is None else top)
-    _, counts = score(cls, thetas[best], valid[best], points, n_valid, threshold)
+    _, counts = score(cls, thetas[best], valid[best], points, n_valid, threshold, gate=gate)
     if top is None:
         return thetas[best[0]], costs[best[0]], counts[0], jnp.sum(valid)
     return thetas[best], costs[best], counts, jnp.sum(valid)
 
 
-batch_best = _jit_tuned(_batch_best, static_argnames=("cls", "batch_size", "estimator"))
+batch_best = _jit_tuned(_batch_best, static_argnames=("cls", "batch_size", "estimator",
+                                                      "gated"))
 
 
-def _msac(cls, theta, points, n_valid, threshold):
+def _msac(cls, theta, points, n_valid, threshold, gate=None):
     """MSAC cost and inlier count of one hypothesis theta (P,)."""
-    cost, count = score(cls, theta[None], jnp.ones(1, bool), points, n_valid, threshold)
+    cost, count = score(cls, theta[None], jnp.ones(1, bool), points, n_valid, threshold,
+                        gate=gate)
     return cost[0], count[0]
 
 
 @partial(jax.jit, static_argnames=("cls", "max_rounds", "steps"))
 def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds: int = 20,
-                 steps: int = 10, limits=None):
+                 steps: int = 10, limits=None, normals=None):
     """Local optimisation of a hypothesis theta (P,) on padded points (B, 3).
 
     Each round takes the current inliers (within LO_WIDEN thresholds) and runs ``steps``
@@ -247,7 +265,8 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
     (at most ``max_rounds``), so the inlier set can grow from a rough hypothesis to the
     whole surface, and refinement never makes the model worse by the loop's own measure.
     The steps see at most LO_POINTS points, evenly strided over the cloud. A step that
-    would leave the user's ``limits`` (6,) (``Model.within``) is refused.
+    would leave the user's ``limits`` (7,) (``Model.within``) is refused. With ``normals``
+    (B, 3), inliers are gated on them with min_cos = limits[6] (see ``score``).
     Returns the refined theta, its MSAC cost and inlier count.
     """
     rows = jnp.arange(min(points.shape[0], LO_POINTS))
@@ -256,6 +275,15 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
     live = rows < n_valid
     sub = points[rows]
     p = (sub[:, 0], sub[:, 1], sub[:, 2])
+    gate = None if normals is None else (normals, limits[6])
+
+    def agrees(th):  # the gate of ``score`` on the LM points, (S,) bool
+        if gate is None:
+            return True
+        m = normals[rows]
+        _, slope = jax.jvp(lambda *c: cls.theta_residual(th, c, jnp), p,
+                           (m[:, 0], m[:, 1], m[:, 2]))
+        return jnp.abs(slope) >= gate[1]
 
     def lm_step(_, carry):
         th, lam, sse, weight = carry
@@ -274,10 +302,10 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
     def lo_round(carry):
         th, cost, _, rounds = carry
         r = cls.theta_residual(th, p, jnp)
-        weight = (live & (jnp.abs(r) < LO_WIDEN * threshold)).astype(th.dtype)
+        weight = (live & (jnp.abs(r) < LO_WIDEN * threshold) & agrees(th)).astype(th.dtype)
         init = (th, jnp.asarray(1e-3, th.dtype), jnp.sum((r * weight) ** 2), weight)
         candidate = jax.lax.fori_loop(0, steps, lm_step, init)[0]
-        new_cost = _msac(cls, candidate, points, n_valid, threshold)[0]
+        new_cost = _msac(cls, candidate, points, n_valid, threshold, gate)[0]
         better = new_cost < cost * (1.0 - LO_GAIN)
         return (jnp.where(better, candidate, th), jnp.where(better, new_cost, cost), better,
                 rounds + 1)
@@ -285,9 +313,9 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
     def going(carry):
         return carry[2] & (carry[3] < max_rounds)
 
-    cost = _msac(cls, theta, points, n_valid, threshold)[0]
+    cost = _msac(cls, theta, points, n_valid, threshold, gate)[0]
     theta, _, _, _ = jax.lax.while_loop(going, lo_round, (theta, cost, True, 0))
-    return (theta, *_msac(cls, theta, points, n_valid, threshold))
+    return (theta, *_msac(cls, theta, points, n_valid, threshold, gate))
 
 
 # ----- host side ----------------------------------------------------------------------
@@ -310,7 +338,7 @@ def _padded(rows: np.ndarray, dtype, size: int | None = None):
 
 
 def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sample,
-                     cloud_keys, threshold, limits, batch):
+                     cloud_keys, threshold, limits, batch, gated=False):
     """``batch_best`` for every cloud: points (C, B, 3), normals (C, B, 3) or None,
     n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), limits (C, 6);
     batch b of cloud c uses fold_in(cloud_keys[c], b)."""
@@ -318,7 +346,7 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
     def one(args):
         p, nrm, n, m, k, t, lim = args
         return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
-                           estimator, LO_STARTS, m, lim)
+                           estimator, LO_STARTS, m, lim, gated)
 
     return jax.lax.map(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,
                              limits),
@@ -326,7 +354,7 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
 
 
 _batch_best_many = _jit_tuned(_batch_best_many,
-                              static_argnames=("cls", "batch_size", "estimator"))
+                              static_argnames=("cls", "batch_size", "estimator", "gated"))
 
 
 _fold_in_each = jax.jit(jax.vmap(jax.random.fold_in, in_axes=(None, 0)))
@@ -344,18 +372,19 @@ def _group(clouds: int, elements: int) -> int:
 
 
 @partial(jax.jit, static_argnames=("cls",))
-def _refine_many(cls, thetas, points, n_valid, threshold, limits):
-    """refine_theta for each cloud's LO_STARTS hypotheses thetas (C, S, P); returns the
-    best refined theta (C, P), its cost (C,) and inlier count (C,) per cloud."""
+def _refine_many(cls, thetas, points, n_valid, threshold, limits, normals=None):
+    """refine_theta for each cloud's LO_STARTS hypotheses thetas (C, S, P), gated on
+    normals (C, B, 3) if given; returns the best refined theta (C, P), its cost (C,) and
+    inlier count (C,) per cloud."""
 
-    def refine(theta, p, n, t, lim):
-        return refine_theta(cls, theta, p, n, t, limits=lim)
+    def refine(theta, p, n, t, lim, nrm):
+        return refine_theta(cls, theta, p, n, t, limits=lim, normals=nrm)
 
-    starts = jax.vmap(refine, in_axes=(0, None, None, None, None))
+    starts = jax.vmap(refine, in_axes=(0, None, None, None, None, None))
     # A while_loop under vmap runs until its slowest member stops: small groups keep
     # one slow cloud from holding all the others for max_rounds.
     theta, cost, count = jax.lax.map(lambda a: starts(*a),
-                                     (thetas, points, n_valid, threshold, limits),
+                                     (thetas, points, n_valid, threshold, limits, normals),
                                      batch_size=_group(points.shape[0], points.shape[1] * 64))
     best = jnp.argmin(cost, axis=1)[:, None]
     pick = lambda a: jnp.take_along_axis(a, best.reshape(best.shape + (1,) * (a.ndim - 2)),  # noqa: E731
@@ -373,7 +402,11 @@ class _Cloud:
     center: np.ndarray
     scale: float
     threshold: float  # in the cloud's units
-    limits: np.ndarray  # (6,) the user's bounds, see Model.within, in the cloud's units
+    limits: np.ndarray  # (7,) the user's bounds (limits_for), in the cloud's units
+
+    @property
+    def gated(self) -> bool:
+        return self.limits[6] > -1
 
     @property
     def unit(self):
@@ -398,15 +431,23 @@ def _normals_key(key, cloud: int):
     return jax.random.fold_in(jax.random.fold_in(key, cloud), 0x6E6F726D)
 
 
-def limits_for(cls: type[Model], radius_range=None, axis_prior=None) -> np.ndarray:
-    """The user's bounds as the (6,) vector ``Model.within`` reads, with clear errors.
+def limits_for(cls: type[Model], radius_range=None, axis_prior=None,
+               normal_angle=None) -> np.ndarray:
+    """The user's bounds as the (7,) vector the kernel reads, with clear errors:
+    ``Model.within`` reads the first six, the normal gate (``score``) the last.
 
     radius_range : None or (low, high), 0 <= low < high (sphere, cylinder).
     axis_prior : None or (direction (3,), max_angle_deg in (0, 90]): the axis (the
         normal, for a plane) within that angle of the direction, either sign (plane,
         cylinder, cone).
+    normal_angle : None or degrees in (0, 90]: a point is an inlier only if its normal is
+        within that angle of the surface's (either sign).
     """
-    limits = np.array([0.0, np.inf, 0.0, 0.0, 1.0, 0.0])
+    limits = np.array([0.0, np.inf, 0.0, 0.0, 1.0, 0.0, -2.0])  # -2: no gate
+    if normal_angle is not None:
+        if not (isinstance(normal_angle, int | float) and 0 < normal_angle <= 90):
+            raise ValueError(f"normal_angle must be in (0, 90] degrees, got {normal_angle!r}")
+        limits[6] = np.cos(np.radians(float(normal_angle)))
     if radius_range is not None:
         if cls.radius_index is None:
             raise ValueError(f"radius_range does not apply to a {cls.name} (sphere, cylinder)")
@@ -441,8 +482,13 @@ def _prepare(points, cls, normals, threshold, est, key, limits) -> _Cloud:
         threshold = DEFAULT_THRESHOLD_FRACTION * diagonal
     threshold = _checks.positive(threshold, "threshold")
     pool = None
-    if not est.uses_normals:
+    gated = limits[6] > -1
+    if not (est.uses_normals or gated):
         normals = None
+    elif normals is None and gated:  # the gate reads every point's normal
+        from .normals import normals_at
+
+        normals = normals_at(cloud, np.arange(len(cloud)), k=min(16, len(cloud)))
     elif normals is None:
         from .normals import normals_at  # scipy's KD-tree: imported only when needed
 
@@ -469,6 +515,7 @@ def fit(
     estimator: str | None = None,
     radius_range=None,
     axis_prior=None,
+    normal_angle: float | None = None,
     key=0,
 ) -> FitResult:
     """Fit one primitive to a point cloud with batched RANSAC and MSAC scoring.
@@ -504,6 +551,9 @@ def fit(
     axis_prior : optional (direction (3,), max_angle_deg): the axis (a plane's normal)
         must stay within that angle of the direction, either sign (plane, cylinder,
         cone), before and after refinement.
+    normal_angle : optional degrees in (0, 90]: a point counts as an inlier (in scoring,
+        refinement and the result) only if its normal is within that angle of the
+        surface's, either sign. Uses ``normals``, estimated for every point if not given.
     key : int seed or JAX PRNG key. ``fit(points, ...)`` equals
         ``fit_batch([points], ...)[0]``: batch b uses ``fold_in(fold_in(key, 0), b)``.
 
@@ -515,7 +565,8 @@ def fit(
         [points], shape, normals=None if normals is None else [normals], thresholds=threshold,
         confidence=confidence, max_hypotheses=max_hypotheses, batch_size=batch_size,
         max_stall=max_stall, min_hypotheses=min_hypotheses, refine=refine,
-        estimator=estimator, radius_range=radius_range, axis_prior=axis_prior, key=key,
+        estimator=estimator, radius_range=radius_range, axis_prior=axis_prior,
+        normal_angle=normal_angle, key=key,
     )[0]
 
 
@@ -534,6 +585,7 @@ def fit_batch(
     estimator: str | None = None,
     radius_range=None,
     axis_prior=None,
+    normal_angle: float | None = None,
     key=0,
     skip_failures: bool = False,
 ) -> list[FitResult | None]:
@@ -570,7 +622,7 @@ def fit_batch(
     if len(thresholds) != len(clouds):
         raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
     key = _checks.prng_key(key)
-    limits = limits_for(cls, radius_range, axis_prior)
+    limits = limits_for(cls, radius_range, axis_prior, normal_angle)
     prepared = []
     for i, points in enumerate(clouds):
         try:
@@ -631,7 +683,8 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
     rows = [clouds[i].kernel_rows() for i in order]
     padded = put(np.stack([_padded(unit, dtype, size) for unit, _, _ in rows]))
     normals = None
-    if est.uses_normals:
+    gated = clouds[0].gated  # one normal_angle for all clouds of a call
+    if est.uses_normals or gated:
         normals = put(np.stack([_padded(nrm, dtype, size) for _, nrm, _ in rows]))
     n = put(np.asarray([clouds[i].points.shape[0] for i in order], np.int32))
     n_sample = put(np.asarray([m for _, _, m in rows], np.int32))
@@ -651,7 +704,7 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
     while active.any() and batch * batch_size < max_hypotheses:
         theta, cost, found, _ = _batch_best_many(cls, batch_size, est.name, padded, normals, n,
                                                  n_sample, cloud_keys, unit_threshold, limits,
-                                                 batch)
+                                                 batch, gated)
         batch += 1
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
@@ -660,7 +713,8 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
         improved = active & (raw < best_raw)
         best_raw = np.where(improved, raw, best_raw)
         if refine and improved.any():
-            theta, cost, found = _refine_many(cls, theta, padded, n, unit_threshold, limits)
+            theta, cost, found = _refine_many(cls, theta, padded, n, unit_threshold, limits,
+                                              normals if gated else None)
         else:
             theta, cost, found = theta[:, 0], cost[:, 0], found[:, 0]
         cost, found, theta = np.asarray(cost, np.float64), np.asarray(found), np.asarray(theta)
@@ -685,20 +739,35 @@ def _result(cls, cloud: _Cloud, theta, drawn, status) -> FitResult:
             f"for a {cls.name} (coincident, collinear or coplanar)"
         )
     unit_threshold = cloud.threshold / cloud.scale
-    model = _bounded(cls, np.asarray(theta, np.float64), cloud.unit, unit_threshold)
+    theta = np.asarray(theta, np.float64)
+    agree = _agreeing(cls, theta, cloud)
+    model = _bounded(cls, theta, cloud.unit, unit_threshold, agree)
     model = model.rescaled(cloud.scale, cloud.center)
     # Final inliers are judged against the bounded primitive the user gets back.
     distance = model.distance(cloud.points)
-    inliers = distance < cloud.threshold
+    inliers = (distance < cloud.threshold) & agree
+    distance = np.where(agree, distance, np.inf)
     cost = float(np.sum(np.minimum(distance**2, cloud.threshold**2)))
     return FitResult(model, inliers, int(inliers.sum()), cost, int(drawn), status,
                      cloud.threshold)
 
 
-def _bounded(cls, theta, unit, unit_threshold):
-    """The bounded model from a hypothesis, in the normalised frame (float64)."""
+def _agreeing(cls, theta, cloud: _Cloud):
+    """(N,) whether each point passes the normal gate of hypothesis theta (normalised
+    frame): the kernel's JVP as a central difference, in float64 NumPy."""
+    if not cloud.gated:
+        return np.ones(len(cloud.points), bool)
+    unit, step = cloud.unit, 1e-6
+    ahead, back = (cls.theta_residual(theta, tuple((unit + s * cloud.normals).T), np)
+                   for s in (step, -step))
+    return np.abs(ahead - back) / (2 * step) >= cloud.limits[6]
+
+
+def _bounded(cls, theta, unit, unit_threshold, agree=True):
+    """The bounded model from a hypothesis, in the normalised frame (float64), bounded by
+    the points near its surface (and passing the normal gate, ``agree`` (N,))."""
     residual = cls.theta_residual(theta, (unit[:, 0], unit[:, 1], unit[:, 2]), np)
-    inliers = np.abs(residual) < unit_threshold
+    inliers = (np.abs(residual) < unit_threshold) & agree
     if not inliers.any():
         raise _checks.FitError(f"the best {cls.name} hypothesis has no inliers")
     return cls.from_theta(theta, unit, inliers, unit_threshold)

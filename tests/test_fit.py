@@ -261,3 +261,21 @@ def test_user_bounds_hold_before_and_after_refinement():
     # the cone's half-angle stays in (0, pi/2) through refinement
     cone = jaxfit.fit(demo_cloud("cone", seed=2)[0], "cone")
     assert 0 < cone.model.half_angle < np.pi / 2
+
+
+def test_normal_gate_drops_points_whose_normals_disagree():
+    from jaxfit.scenarios import make
+
+    case = make("cylinder", "RN", 0.5, count=3000, seed=1)
+    # 200 outliers planted on the surface itself, with normals along the axis
+    rng = np.random.default_rng(0)
+    planted, _ = case.model.sample(200, rng)
+    points = np.vstack([case.points, planted])
+    normals = np.vstack([case.normals, np.tile(case.model.axis, (200, 1))])
+    kwargs = dict(threshold=0.01 * case.size, normals=normals)
+    plain = jaxfit.fit(points, "cylinder", **kwargs)
+    gated = jaxfit.fit(points, "cylinder", normal_angle=20, **kwargs)
+    assert plain.inliers[-200:].all()  # on the surface: inliers by distance alone
+    assert not gated.inliers[-200:].any()
+    assert gated.inliers[: len(case.points)][case.inliers].mean() > 0.99
+    assert axis_angle_deg(gated.model.axis, case.model.axis) < 0.1

@@ -36,6 +36,7 @@ GOOD = np.random.default_rng(0).normal(size=(50, 3))
         (GOOD, {"shape": "cylinder", "axis_prior": ((0, 0, 0), 10)}, "axis_prior direction"),
         (GOOD, {"shape": "plane", "axis_prior": ((0, 0, 1), 120)}, "axis_prior angle"),
         (GOOD, {"axis_prior": ((0, 0, 1), 10)}, "axis_prior does not apply to a sphere"),
+        (GOOD, {"normal_angle": 0}, "normal_angle must be in"),
         (GOOD, {"normals": GOOD[:10]}, "normals must match"),
         (GOOD, {"normals": np.zeros_like(GOOD)}, "zero vectors"),
         (GOOD, {"normals": np.full_like(GOOD, np.nan)}, "normals contain"),
