@@ -30,7 +30,8 @@ def _fit_and_report(points, args):
     import jaxfit
 
     start = time.perf_counter()
-    result = jaxfit.fit(points, args.shape, threshold=args.threshold, key=args.seed)
+    result = jaxfit.fit(points, args.shape, threshold=args.threshold, key=args.seed,
+                        estimator=args.estimator)
     _print_result(result, time.perf_counter() - start)
     if args.json:
         payload = {"model": result.model.to_dict(), "num_inliers": result.num_inliers,
@@ -76,6 +77,8 @@ def _parser():
         p.add_argument("--threshold", type=float, default=None,
                        help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
         p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+        p.add_argument("--estimator", choices=["thesis", "oriented"], default=None,
+                       help="minimal-sample estimator (default: the shape's best)")
         p.add_argument("--json", metavar="OUT", help="write the result as JSON")
         p.add_argument("--mesh", metavar="OUT", help="write the primitive's mesh (.ply, .stl, ...)")
 

@@ -33,6 +33,21 @@ def test_fit_reads_a_point_file(tmp_path, capsys):
     assert "threshold 0.02" in printed
 
 
+def test_fit_takes_the_estimator(tmp_path, capsys):
+    points, truth, _ = demo_cloud("cylinder", seed=1)
+    path = tmp_path / "cloud.npy"
+    np.save(path, points)
+    for name in ("thesis", "oriented"):
+        out = tmp_path / f"{name}.json"
+        assert main(["fit", str(path), "--shape", "cylinder", "--estimator", name,
+                     "--json", str(out)]) == 0
+        payload = json.loads(out.read_text())
+        assert abs(payload["model"]["radius"] / truth.radius - 1) < 0.01
+    thesis = json.loads((tmp_path / "thesis.json").read_text())["num_hypotheses"]
+    oriented = json.loads((tmp_path / "oriented.json").read_text())["num_hypotheses"]
+    assert oriented < thesis
+
+
 def test_errors_are_messages_not_tracebacks(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "missing.xyz"), "--shape", "plane"]) == 2
     assert "jaxfit: error:" in capsys.readouterr().err
