@@ -340,7 +340,7 @@ def _padded(rows: np.ndarray, dtype, size: int | None = None):
 def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sample,
                      cloud_keys, threshold, limits, batch, gated=False):
     """``batch_best`` for every cloud: points (C, B, 3), normals (C, B, 3) or None,
-    n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), limits (C, 6);
+    n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), limits (C, 7);
     batch b of cloud c uses fold_in(cloud_keys[c], b)."""
 
     def one(args):
@@ -397,7 +397,9 @@ class _Cloud:
     """One validated cloud, in the normalised frame the kernels see."""
 
     points: np.ndarray  # (N, 3) float64, as given
-    normals: np.ndarray | None  # (M, 3) unit, of points[pool], when the estimator reads them
+    # (M, 3) unit normals of points[pool] (all N points without a pool), kept when the
+    # estimator or the normal gate reads them
+    normals: np.ndarray | None
     pool: np.ndarray | None  # (M,) indices samples are drawn from (None: all points)
     center: np.ndarray
     scale: float
@@ -445,7 +447,8 @@ def limits_for(cls: type[Model], radius_range=None, axis_prior=None,
     """
     limits = np.array([0.0, np.inf, 0.0, 0.0, 1.0, 0.0, -2.0])  # -2: no gate
     if normal_angle is not None:
-        if not (isinstance(normal_angle, int | float) and 0 < normal_angle <= 90):
+        if (isinstance(normal_angle, bool) or not isinstance(normal_angle, numbers.Real)
+                or not 0 < normal_angle <= 90):
             raise ValueError(f"normal_angle must be in (0, 90] degrees, got {normal_angle!r}")
         limits[6] = np.cos(np.radians(float(normal_angle)))
     if radius_range is not None:
@@ -680,7 +683,8 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
     dtype = jax.dtypes.canonicalize_dtype(np.float64)  # float32 unless x64 is on
     order = list(range(count)) + [0] * (slots - count)  # padding slots repeat cloud 0
     put = _placer(devices)
-    rows = [clouds[i].kernel_rows() for i in order]
+    built = [cloud.kernel_rows() for cloud in clouds]  # padding slots reuse cloud 0's
+    rows = [built[i] for i in order]
     padded = put(np.stack([_padded(unit, dtype, size) for unit, _, _ in rows]))
     normals = None
     gated = clouds[0].gated  # one normal_angle for all clouds of a call
