@@ -6,7 +6,8 @@ side by side in one run, on the same clouds with the same options (defaults: con
 0.99, LO refinement):
 - ``fit``: a Python loop of C ``jaxfit.fit(cloud, shape, key=i)`` calls;
 - ``fit_batch``: one ``jaxfit.fit_batch(clouds, shape)`` call.
-Both warm (one untimed call of each first compiles the kernels), best of ``--repeats``.
+Each with LO refinement (the default) and without (``refine=False``). Both warm (one
+untimed call of each first compiles the kernels), best of ``--repeats``.
 Accuracy: median over the clouds of the main error against the true primitive (as in
 ``benchmarks/solution.py``), so the speed-up is not bought with worse fits.
 
@@ -65,21 +66,21 @@ def best_time(fn, repeats: int):
     return best, out
 
 
-def measure(shape: str, count: int, repeats: int) -> dict:
+def measure(shape: str, count: int, repeats: int, refine: bool = True) -> dict:
     clouds, truths = clouds_for(shape, count)
 
     def loop():
-        return [jaxfit.fit(c, shape, key=i) for i, c in enumerate(clouds)]
+        return [jaxfit.fit(c, shape, key=i, refine=refine) for i, c in enumerate(clouds)]
 
     def batch():
-        return jaxfit.fit_batch(clouds, shape, skip_failures=True)
+        return jaxfit.fit_batch(clouds, shape, skip_failures=True, refine=refine)
 
-    jaxfit.fit(clouds[0], shape)  # compile both paths
+    jaxfit.fit(clouds[0], shape, refine=refine)  # compile both paths
     batch()
     t_loop, singles = best_time(loop, repeats)
     t_batch, batched = best_time(batch, repeats)
     return {
-        "shape": shape, "clouds": count, "points": POINTS,
+        "shape": shape, "clouds": count, "points": POINTS, "refine": refine,
         "fit_loop_s": t_loop, "fit_batch_s": t_batch, "speedup": t_loop / t_batch,
         "fit_ms_per_cloud": 1e3 * t_loop / count, "batch_ms_per_cloud": 1e3 * t_batch / count,
         "fit_median_error": float(np.nanmedian([error(shape, r.model, t)
@@ -92,15 +93,17 @@ def measure(shape: str, count: int, repeats: int) -> dict:
 
 def on_devices(devices: int, shape: str, count: int, repeats: int) -> float:
     """Seconds for the same fit_batch with ``devices`` forced host devices (subprocess)."""
-    script = (
-        "import sys, time; sys.path.insert(0, %r)\n"
-        "import jax, jaxfit\n"
-        "from benchmarks.batch import clouds_for, best_time\n"
-        "assert len(jax.local_devices()) == %d, jax.local_devices()\n"
-        "clouds, _ = clouds_for(%r, %d)\n"
-        "jaxfit.fit_batch(clouds, %r, skip_failures=True)\n"
-        "print(best_time(lambda: jaxfit.fit_batch(clouds, %r, skip_failures=True), %d)[0])\n"
-    ) % (str(Path(__file__).resolve().parents[1]), devices, shape, count, shape, shape, repeats)
+    root = str(Path(__file__).resolve().parents[1])
+    script = "\n".join([
+        f"import sys; sys.path.insert(0, {root!r})",
+        "import jax, jaxfit",
+        "from benchmarks.batch import clouds_for, best_time",
+        f"assert len(jax.local_devices()) == {devices}, jax.local_devices()",
+        f"clouds, _ = clouds_for({shape!r}, {count})",
+        f"run = lambda: jaxfit.fit_batch(clouds, {shape!r}, skip_failures=True)",
+        "run()",
+        f"print(best_time(run, {repeats})[0])",
+    ])
     env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                          text=True, check=True)
@@ -108,14 +111,16 @@ def on_devices(devices: int, shape: str, count: int, repeats: int) -> float:
 
 
 def table(rows) -> str:
-    lines = ["| shape | clouds x points | C `fit` calls (s) | one `fit_batch` (s) | speed-up "
-             "| ms per cloud: fit / batch | median error: fit / batch | devices: s |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| shape | clouds x points | refine | C `fit` calls (s) | one `fit_batch` (s) "
+             "| speed-up | ms per cloud: fit / batch | median error: fit / batch "
+             "| fit_batch on forced host devices: s |",
+             "|---|---|---|---|---|---|---|---|---|"]
     unit = {"sphere": "centre/R", "plane": "deg", "cylinder": "deg", "cone": "deg"}
     for r in rows:
-        devices = ", ".join(f"{d}: {s:.2f}" for d, s in r.get("devices", {}).items()) or "-"
+        devices = ", ".join(f"{d} devices: {s:.3f}" for d, s in r.get("devices", {}).items())
         lines.append(
-            f"| {r['shape']} | {r['clouds']} x {r['points']} | {r['fit_loop_s']:.2f} "
+            f"| {r['shape']} | {r['clouds']} x {r['points']} | {'yes' if r['refine'] else 'no'} "
+            f"| {r['fit_loop_s']:.2f} "
             f"| {r['fit_batch_s']:.3f} | {r['speedup']:.1f}x "
             f"| {r['fit_ms_per_cloud']:.2f} / {r['batch_ms_per_cloud']:.2f} "
             f"| {r['fit_median_error']:.2g} / {r['batch_median_error']:.2g} {unit[r['shape']]} "
@@ -134,11 +139,13 @@ def main(argv=None):
     rows = []
     for shape in args.shapes:
         for count in args.clouds:
-            row = measure(shape, count, args.repeats)
-            row["devices"] = {d: on_devices(d, shape, count, args.repeats)
-                              for d in args.devices}
-            rows.append(row)
-            print(table([row]).splitlines()[-1], flush=True)
+            for refine in (True, False):
+                row = measure(shape, count, args.repeats, refine)
+                if refine:
+                    row["devices"] = {d: on_devices(d, shape, count, args.repeats)
+                                      for d in args.devices}
+                rows.append(row)
+                print(table([row]).splitlines()[-1], flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     meta = {"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
             "cpus": os.cpu_count()}

@@ -34,13 +34,20 @@ def cloud(points, name: str = "points") -> np.ndarray:
         raise ValueError(f"{name} must be numeric, of shape (N, 3): {err}") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
-    bad = ~np.isfinite(arr).all(axis=1)
-    if bad.any():
-        rows = np.flatnonzero(bad)
+    if not np.isfinite(arr).all():  # (the row-wise test is 20x slower: only on failure)
+        rows = np.flatnonzero(~np.isfinite(arr).all(axis=1))
         raise ValueError(
             f"{name} contain {rows.size} row(s) with NaN or inf values, e.g. row {rows[0]}"
         )
     return arr
+
+
+def bounds(points: np.ndarray):
+    """(lo (3,), hi (3,)) of points (N, 3), one column at a time: NumPy's axis-0
+    reductions over (N, 3) run an inner loop of length 3 and were 6x slower (10k points:
+    0.5 ms, a tenth of a whole fit)."""
+    lo = np.array([points[:, i].min() for i in range(3)])
+    return lo, np.array([points[:, i].max() for i in range(3)])
 
 
 def points_for(points, cls: type[Model]) -> np.ndarray:

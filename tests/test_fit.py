@@ -12,7 +12,7 @@ import pytest
 from conftest import SHAPES, axis_angle_deg
 
 import jaxfit
-from jaxfit.ransac import Status, bucket_size, required_hypotheses
+from jaxfit.ransac import Status, bucket_size, required_hypotheses, uniform_indices
 from jaxfit.synthetic import demo_cloud
 
 SEEDS = (0, 1, 2)
@@ -93,6 +93,18 @@ def test_stopping_rule_values():
     assert required_hypotheses(0.1, 4, 0.99) == 46050
     assert required_hypotheses(0.0, 3, 0.99) == math.inf
     assert required_hypotheses(1.0, 3, 0.99) == 1
+
+
+def test_sample_indices_are_exactly_floor_of_bits_times_n():
+    # The kernel's one-word index draw equals floor(bits * n / 2^32) computed in uint64,
+    # at the edges of both factors' 16-bit halves too, so every index in [0, n) is reachable.
+    words = np.r_[np.random.default_rng(0).integers(0, 2**32, 100_000, dtype=np.uint64),
+                  0, 1, 2**16 - 1, 2**16, 2**31, 2**32 - 2, 2**32 - 1].astype(np.uint32)
+    for n in (1, 3, 1000, 65535, 65536, 65537, 1_000_003, 2**24 + 1, 2**31 - 1):
+        exact = (words.astype(np.uint64) * n) >> 32
+        got = np.asarray(uniform_indices(jax.numpy.asarray(words), n))
+        np.testing.assert_array_equal(got, exact.astype(np.int64))
+    assert np.asarray(uniform_indices(jax.numpy.asarray(words[-1:]), 7))[0] == 6
 
 
 def test_status_reports_why_the_loop_stopped():

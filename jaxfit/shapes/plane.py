@@ -61,10 +61,10 @@ class Plane(Model):
         on_plane = points[inliers] - np.outer(points[inliers] @ normal + offset, normal)
         # The patch: around the inliers' median, out to where they thin out (strays in
         # the plane's slab far from the patch are sparse and are left outside).
-        center = np.median(on_plane, axis=0)
-        _, radius = g.main_interval(np.linalg.norm(on_plane - center, axis=1),
-                                    g.GAP_THRESHOLDS * threshold)
-        center = on_plane[np.linalg.norm(on_plane - center, axis=1) <= radius].mean(axis=0)
+        center = np.array([np.median(on_plane[:, i]) for i in range(3)])
+        spread = g.row_norms(on_plane - center)
+        _, radius = g.main_interval(spread, g.GAP_THRESHOLDS * threshold)
+        center = on_plane[spread <= radius].mean(axis=0)
         return cls(normal, np.float64(offset), center, np.float64(radius))
 
     def theta(self):
