@@ -335,3 +335,30 @@ def test_ransac_statuses():
     assert math.isinf(out["cost"]) and np.all(np.isnan(out["theta"]))
     with pytest.raises(ValueError):
         reference.estimate("box", np.zeros((5, 3)))  # the box needs its support
+
+
+@pytest.mark.parametrize("shape", ["sphere", "cylinder", "box"])
+def test_tuned_kernel_equals_plain_kernel(shape):
+    # The per-function XLA CPU options (fast min/max, vector width) must not change what
+    # the kernel picks: same best hypothesis, cost and inlier count as a plain jax.jit.
+    cls = REGISTRY[shape]
+    cloud, _ = unit_cloud(shape)
+    padded = jnp.asarray(engine._padded(cloud, np.float32))
+    args = (padded, cloud.shape[0], jax.random.key(3), jnp.float32(THRESHOLD))
+    tuned = engine.batch_best(cls, 256, *args)
+    plain = jax.jit(engine._batch_best, static_argnums=(0, 1))(cls, 256, *args)
+    np.testing.assert_allclose(np.asarray(tuned[0]), np.asarray(plain[0]), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(float(tuned[1]), float(plain[1]), rtol=1e-5)
+    assert int(tuned[2]) == int(plain[2]) and int(tuned[3]) == int(plain[3])
+
+
+def test_refused_xla_options_fall_back_with_a_warning(monkeypatch):
+    # A jax version that drops an experimental option must not break fitting.
+    monkeypatch.setattr(engine, "CPU_OPTIONS", {"xla_cpu_no_such_option_for_jaxfit": True})
+    double = engine._jit_tuned(lambda x: 2 * x)
+    if jax.default_backend() != "cpu":
+        pytest.skip("the options apply to the CPU backend only")
+    with pytest.warns(RuntimeWarning, match="XLA CPU options refused"):
+        out = double(jnp.arange(3.0))
+    np.testing.assert_array_equal(np.asarray(out), [0.0, 2.0, 4.0])
+    np.testing.assert_array_equal(np.asarray(double(jnp.arange(2.0))), [0.0, 2.0])
