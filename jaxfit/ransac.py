@@ -745,7 +745,7 @@ def _placer(devices):
     ``--xla_force_host_platform_device_count``), so every jitted call below runs on all
     of them; on one device, plain arrays."""
     if len(devices) == 1:
-        return jnp.asarray
+        return lambda array: array  # jit takes NumPy arrays on its fast path
     mesh = jax.sharding.Mesh(np.asarray(devices), ("clouds",))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("clouds"))
     return lambda array: jax.device_put(array, sharding)
@@ -778,7 +778,7 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
     n_sample = put(np.asarray([m for _, _, m in rows], np.int32))
     unit_threshold = put(np.asarray([clouds[i].threshold / clouds[i].scale for i in order],
                                     dtype))
-    cloud_keys = put(_fold_in_each(key, jnp.arange(slots)))
+    cloud_keys = put(_fold_in_each(key, np.arange(slots, dtype=np.int32)))
     limits = put(np.stack([clouds[i].unit_limits() for i in order]).astype(dtype))
 
     best_theta = np.full((slots, cls.num_params), np.nan)
