@@ -797,7 +797,7 @@ def _search(cls, est, clouds, key, confidence, max_hypotheses, batch_size, max_s
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
         # so a rough but right one is not hidden behind a polished wrong one).
-        raw = np.asarray(cost[:, 0], np.float64)
+        raw = np.asarray(cost, np.float64)[:, 0]  # (sliced on the host: see below)
         improved = active & (raw < best_raw)
         best_raw = np.where(improved, raw, best_raw)
         if refine and improved.any():
