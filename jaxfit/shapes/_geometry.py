@@ -131,9 +131,10 @@ def main_interval(values, gap):
     values. Strays (outliers near a surface's unbounded continuation) are far sparser
     than the surface, so they fall below the cut and do not stretch the bounds."""
     v = np.asarray(values, dtype=np.float64)
-    edges = np.arange(v.min(), v.max() + gap, gap) if v.max() > v.min() else np.array([v.min()])
-    which = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, len(edges) - 1)
-    counts = np.bincount(which, minlength=len(edges))
+    lo, hi = v.min(), v.max()
+    bins = int((hi - lo) // gap) + 1 if hi > lo else 1
+    which = np.minimum(((v - lo) / gap).astype(np.int64), bins - 1)  # uniform bins: no search
+    counts = np.bincount(which, minlength=bins)
     dense = np.r_[False, counts >= 0.2 * counts.max(), False]
     starts = np.flatnonzero(~dense[:-1] & dense[1:])
     ends = np.flatnonzero(dense[:-1] & ~dense[1:])

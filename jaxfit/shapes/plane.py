@@ -58,13 +58,15 @@ class Plane(Model):
     def from_theta(cls, theta, points, inliers, threshold):
         normal = g.sign_canonical(theta[:3])
         offset = theta[3] * (1.0 if normal @ theta[:3] > 0 else -1.0)
-        on_plane = points[inliers] - np.outer(points[inliers] @ normal + offset, normal)
+        near = points[inliers]
+        on_plane = near - np.outer(near @ normal + offset, normal)
         # The patch: around the inliers' median, out to where they thin out (strays in
         # the plane's slab far from the patch are sparse and are left outside).
-        center = np.array([np.median(on_plane[:, i]) for i in range(3)])
+        columns = on_plane.T  # (3, M): per-coordinate reductions (see g.row_norms)
+        center = np.median(columns, axis=1)
         spread = g.row_norms(on_plane - center)
         _, radius = g.main_interval(spread, g.GAP_THRESHOLDS * threshold)
-        center = on_plane[spread <= radius].mean(axis=0)
+        center = columns[:, spread <= radius].mean(axis=1)
         return cls(normal, np.float64(offset), center, np.float64(radius))
 
     def theta(self):
