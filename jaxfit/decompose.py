@@ -39,6 +39,22 @@ not kept: the fraction of a candidate's surface with points near it (coverage) d
 tell the mug's box wedged between its inner and outer walls (72 % covered) from the body
 cylinder (86 %); fitting and judging hollow parts on their points near the part's convex
 hull (so the outer wall wins) broke the lamp and gave the mug a cylinder on the inner wall.
+
+Departure: hollow parts (``_swallow``, in each reassignment round before ``_merge``). The
+box cuts slice the mug into slabs that each hold inner and outer wall, and a box wedged
+between the walls won the middle slab (2.6 mm, less than any single wall's primitive):
+the one-sided distance prefers a surface midway between two walls. A part at least
+``SWALLOW`` (70 %) of whose points lie inside another part's primitive (the convex hull
+of its mesh) is merged into that part. On the mug the body cylinder (r 50.8 mm, h 86)
+held 74-75 % of the middle slab (its bottom and lip lie beyond the cylinder's caps) and
+at most 49 % of any other part in any round; after the merge the body is one cylinder
+r 50.6 mm, h 89 (truth r 50, h 100) and the mug two parts. The 70 % is set from that
+one model, below its 74 %; the other models keep their parts and primitives except
+Homer, whose body part (the same points) is now won by a cylinder (mean distance
+0.039) instead of a box (0.027). Still wrong on the mug: the handle is not a part of
+its own; its part is a box around the handle and a wedge of the body, because
+BoxDecomposition never cuts the handle off (its cut saves 11.7 % of the root box, the
+slab cut it takes 11.2 %, and neither leaf is split again at gain 0.96).
 """
 
 from __future__ import annotations
@@ -67,6 +83,9 @@ MAX_FIT_POINTS = 2048
 #: A fitted candidate whose surface reaches further out of the object's bounding box
 #: (the root MVBB) than this fraction of the box's diagonal cannot win its part.
 MAX_OVERSHOOT = 0.05
+#: In reassignment, a part is merged into another whose primitive's solid holds this
+#: fraction of its points (``_swallow``).
+SWALLOW = 0.7
 #: Colours (RGBA) of the primitives in scenes and previews.
 COLOURS = {
     "sphere": (231, 76, 60, 255), "cylinder": (52, 152, 219, 255),
@@ -239,8 +258,10 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
                             say=say, started=started)
     parts = fit(groups)
     for _ in range(reassign if len(parts) > 1 else 0):
-        regrouped, kinds = _regroup(points, parts, threshold_fraction, max(5, min_points // 2))
-        regrouped = _merge(points, regrouped, kinds, tree.nodes[0].box, gain)
+        regrouped, models = _regroup(points, parts, threshold_fraction, max(5, min_points // 2))
+        if SWALLOW:
+            regrouped, models = _swallow(points, regrouped, models)
+        regrouped = _merge(points, regrouped, [m.name for m in models], tree.nodes[0].box, gain)
         # A part whose points did not change keeps its fits: only the others are refitted.
         known = {p.indices.tobytes(): p for p in parts}
         changed = [g for g in regrouped if g.tobytes() not in known]
@@ -270,8 +291,31 @@ def _regroup(points, parts, threshold_fraction, smallest):
         owner = alive[np.argmin(distances, axis=0)]
         sizes = np.bincount(owner, minlength=len(models))[alive]
         if sizes.min() >= smallest or len(alive) == 1:
-            return [np.flatnonzero(owner == i) for i in alive], [models[i].name for i in alive]
+            return [np.flatnonzero(owner == i) for i in alive], [models[i] for i in alive]
         alive = np.delete(alive, np.argmin(sizes))
+
+
+def _swallow(points, groups, models):
+    """Merge a part into another part whose primitive's solid (the convex hull of its
+    mesh: every primitive is convex) holds at least ``SWALLOW`` of the part's points, the
+    most held first: the inner wall of a hollow body is part of the body (see the module
+    docstring). Returns the groups and the models of the parts that stay."""
+    from scipy.spatial import Delaunay
+
+    groups, models = list(groups), list(models)
+    while len(groups) > 1:
+        hulls = [Delaunay(m.to_mesh().vertices) for m in models]
+        best = None
+        for i, j in itertools.permutations(range(len(groups)), 2):
+            inside = np.mean(hulls[i].find_simplex(points[groups[j]]) >= 0)
+            if inside >= SWALLOW and (best is None or inside > best[0]):
+                best = (inside, i, j)
+        if best is None:
+            break
+        _, i, j = best
+        groups[i] = np.union1d(groups[i], groups[j])
+        del groups[j], models[j]
+    return groups, models
 
 
 def _merge(points, groups, kinds, root: Box, gain: float):
