@@ -81,11 +81,17 @@ THRESHOLD_FRACTION = 0.02
 #: Points of a part handed to RANSAC (a random subset when the part is larger).
 MAX_FIT_POINTS = 2048
 #: A fitted candidate whose surface reaches further out of the object's bounding box
-#: (the root MVBB) than this fraction of the box's diagonal cannot win its part.
+#: (the root MVBB) than this fraction of the box's diagonal can neither win its part nor
+#: claim points in reassignment.
 MAX_OVERSHOOT = 0.05
-#: In reassignment, a part is merged into another whose primitive's solid holds this
-#: fraction of its points (``_swallow``).
-SWALLOW = 0.7
+#: A part is hollow when at least this fraction of its points lie deeper than
+#: ``HOLLOW_DEPTH`` thresholds inside its convex hull (an inner wall): it is fitted and
+#: judged on the others, its outside (``_outside``).
+HOLLOW = 0.25
+HOLLOW_DEPTH = 2.0
+#: A cylinder or cone grows (``_grown``) only over points nearer to its surface than to
+#: any other part's primitive by this many thresholds.
+GROW_MARGIN = 0.1
 #: Colours (RGBA) of the primitives in scenes and previews.
 COLOURS = {
     "sphere": (231, 76, 60, 255), "cylinder": (52, 152, 219, 255),
@@ -258,10 +264,8 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
                             say=say, started=started)
     parts = fit(groups)
     for _ in range(reassign if len(parts) > 1 else 0):
-        regrouped, models = _regroup(points, parts, threshold_fraction, max(5, min_points // 2))
-        if SWALLOW:
-            regrouped, models = _swallow(points, regrouped, models)
-        regrouped = _merge(points, regrouped, [m.name for m in models], tree.nodes[0].box, gain)
+        regrouped, kinds = _regroup(points, parts, threshold_fraction, max(5, min_points // 2))
+        regrouped = _merge(points, regrouped, kinds, tree.nodes[0].box, gain)
         # A part whose points did not change keeps its fits: only the others are refitted.
         known = {p.indices.tobytes(): p for p in parts}
         changed = [g for g in regrouped if g.tobytes() not in known]
@@ -283,39 +287,23 @@ def _regroup(points, parts, threshold_fraction, smallest):
     primitive, grown along its surface (``_grown``), not with its bounding box: a box
     enclosing a mixed part is near every point in it and would keep the sliver.
     """
-    models = [_grown(_best_fitted(p), points, _threshold(p.box, threshold_fraction))
-              for p in parts]
+    fitted = [_best_fitted(p) for p in parts]
+    near = np.stack([m.distance(points) for m in fitted])  # (P, N)
+    models = []
+    for i, (part, model) in enumerate(zip(parts, fitted, strict=True)):
+        threshold = _threshold(part.box, threshold_fraction)
+        # Growth does not pass through the points on another part's primitive (a post
+        # grown through a base's top and bottom faces would cap itself on the bottom).
+        others = np.min(np.delete(near, i, axis=0), axis=0, initial=np.inf)
+        models.append(_grown(model, points, threshold, others))
     alive = np.arange(len(models))
     while True:
         distances = np.stack([models[i].distance(points) for i in alive])  # (P, N)
         owner = alive[np.argmin(distances, axis=0)]
         sizes = np.bincount(owner, minlength=len(models))[alive]
         if sizes.min() >= smallest or len(alive) == 1:
-            return [np.flatnonzero(owner == i) for i in alive], [models[i] for i in alive]
+            return [np.flatnonzero(owner == i) for i in alive], [models[i].name for i in alive]
         alive = np.delete(alive, np.argmin(sizes))
-
-
-def _swallow(points, groups, models):
-    """Merge a part into another part whose primitive's solid (the convex hull of its
-    mesh: every primitive is convex) holds at least ``SWALLOW`` of the part's points, the
-    most held first: the inner wall of a hollow body is part of the body (see the module
-    docstring). Returns the groups and the models of the parts that stay."""
-    from scipy.spatial import Delaunay
-
-    groups, models = list(groups), list(models)
-    while len(groups) > 1:
-        hulls = [Delaunay(m.to_mesh().vertices) for m in models]
-        best = None
-        for i, j in itertools.permutations(range(len(groups)), 2):
-            inside = np.mean(hulls[i].find_simplex(points[groups[j]]) >= 0)
-            if inside >= SWALLOW and (best is None or inside > best[0]):
-                best = (inside, i, j)
-        if best is None:
-            break
-        _, i, j = best
-        groups[i] = np.union1d(groups[i], groups[j])
-        del groups[j], models[j]
-    return groups, models
 
 
 def _merge(points, groups, kinds, root: Box, gain: float):
@@ -350,19 +338,28 @@ def _merge(points, groups, kinds, root: Box, gain: float):
 
 
 def _best_fitted(part: Part) -> Model:
-    """The part's primitive with the lowest mean distance, its bounding box left out."""
-    fitted = {k: c for k, c in part.candidates.items() if k != "mvbb"}
-    return min(fitted.values(), key=lambda c: c.mean_distance).model if fitted else part.model
+    """The part's primitive with the lowest mean distance, its bounding box and the
+    candidates that reach out of the object's box (``Candidate.plausible``) left out
+    (the latter only while a plausible one is left)."""
+    fitted = [c for k, c in part.candidates.items() if k != "mvbb"]
+    if not fitted:
+        return part.model
+    return min(fitted, key=lambda c: (not c.plausible, c.mean_distance)).model
 
 
-def _grown(model: Model, points, threshold) -> Model:
+def _grown(model: Model, points, threshold, others=None) -> Model:
     """A cylinder or cone re-bounded on the inliers of its unbounded surface in the
     whole cloud (other primitives unchanged), so it reaches the points of it that a box
     cut gave to a neighbour. The bounds are the shape's own (``from_theta``): the main
-    run of inliers along the axis, so a gap of a few thresholds stops the growth."""
+    run of inliers along the axis, so a gap of a few thresholds stops the growth.
+    ``others`` (N,), the distance of each point to the other parts' primitives, leaves out
+    the inliers that are not nearer to this surface by ``GROW_MARGIN`` thresholds."""
     if not isinstance(model, Cylinder | Cone):
         return model
-    inliers = np.abs(model.residual(points)) < threshold
+    residual = np.abs(model.residual(points))
+    inliers = residual < threshold
+    if others is not None:
+        inliers &= residual + GROW_MARGIN * threshold < others
     if not inliers.any():
         return model
     return type(model).from_theta(model.theta(), points, inliers, threshold)
@@ -380,6 +377,7 @@ def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed
     clouds = [points[g] for g in groups]
     boxes = [mvbb(cloud) for cloud in clouds]
     thresholds = [_threshold(b, threshold_fraction) for b in boxes]
+    clouds = [_outside(cloud, t) for cloud, t in zip(clouds, thresholds, strict=True)]
     # RANSAC needs no more than a few thousand points of a part to find its primitive;
     # the candidates are still judged on all of them.
     rng = np.random.default_rng(seed)
@@ -403,6 +401,20 @@ def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed
         parts.append(Part(group, box, model.name, winner, model, found[winner].mean_distance,
                           found))
     return parts
+
+
+def _outside(cloud, threshold):
+    """A hollow part's outside: its points within ``HOLLOW_DEPTH`` thresholds of its
+    convex hull, when at least ``HOLLOW`` of them lie deeper; otherwise all of them."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        equations = ConvexHull(cloud).equations
+    except (QhullError, ValueError):  # flat or tiny parts have no inside
+        return cloud
+    depth = -np.max(cloud @ equations[:, :3].T + equations[:, 3], axis=1)
+    outside = depth <= HOLLOW_DEPTH * threshold
+    return cloud[outside] if 1.0 - outside.mean() >= HOLLOW else cloud
 
 
 def _overshoot(model: Model, bounds: Box) -> float:
