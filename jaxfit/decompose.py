@@ -89,9 +89,9 @@ MAX_OVERSHOOT = 0.05
 #: judged on the others, its outside (``_outside``).
 HOLLOW = 0.25
 HOLLOW_DEPTH = 2.0
-#: A cylinder or cone grows (``_grown``) only over points nearer to its surface than to
-#: any other part's primitive by this many thresholds.
-GROW_MARGIN = 0.1
+#: Ownership in reassignment skips implausible candidates unless the best plausible one
+#: is more than this many times as far from its part's points as the part's MVBB.
+OWNER_SLACK = 2.0
 #: Colours (RGBA) of the primitives in scenes and previews.
 COLOURS = {
     "sphere": (231, 76, 60, 255), "cylinder": (52, 152, 219, 255),
@@ -287,15 +287,8 @@ def _regroup(points, parts, threshold_fraction, smallest):
     primitive, grown along its surface (``_grown``), not with its bounding box: a box
     enclosing a mixed part is near every point in it and would keep the sliver.
     """
-    fitted = [_best_fitted(p) for p in parts]
-    near = np.stack([m.distance(points) for m in fitted])  # (P, N)
-    models = []
-    for i, (part, model) in enumerate(zip(parts, fitted, strict=True)):
-        threshold = _threshold(part.box, threshold_fraction)
-        # Growth does not pass through the points on another part's primitive (a post
-        # grown through a base's top and bottom faces would cap itself on the bottom).
-        others = np.min(np.delete(near, i, axis=0), axis=0, initial=np.inf)
-        models.append(_grown(model, points, threshold, others))
+    models = [_grown(_best_fitted(p), points, _threshold(p.box, threshold_fraction))
+              for p in parts]
     alive = np.arange(len(models))
     while True:
         distances = np.stack([models[i].distance(points) for i in alive])  # (P, N)
@@ -338,28 +331,27 @@ def _merge(points, groups, kinds, root: Box, gain: float):
 
 
 def _best_fitted(part: Part) -> Model:
-    """The part's primitive with the lowest mean distance, its bounding box and the
-    candidates that reach out of the object's box (``Candidate.plausible``) left out
-    (the latter only while a plausible one is left)."""
+    """The part's fitted primitive with the lowest mean distance, its bounding box left
+    out, among the plausible ones (``Candidate.plausible``) unless the best of those is
+    more than ``OWNER_SLACK`` times as far from the part's points as the bounding box
+    (then among all of them, as before the plausibility gate)."""
     fitted = [c for k, c in part.candidates.items() if k != "mvbb"]
     if not fitted:
         return part.model
-    return min(fitted, key=lambda c: (not c.plausible, c.mean_distance)).model
+    best = min(fitted, key=lambda c: (not c.plausible, c.mean_distance))
+    if best.plausible and best.mean_distance <= OWNER_SLACK * part.candidates["mvbb"].mean_distance:
+        return best.model
+    return min(fitted, key=lambda c: c.mean_distance).model
 
 
-def _grown(model: Model, points, threshold, others=None) -> Model:
+def _grown(model: Model, points, threshold) -> Model:
     """A cylinder or cone re-bounded on the inliers of its unbounded surface in the
     whole cloud (other primitives unchanged), so it reaches the points of it that a box
     cut gave to a neighbour. The bounds are the shape's own (``from_theta``): the main
-    run of inliers along the axis, so a gap of a few thresholds stops the growth.
-    ``others`` (N,), the distance of each point to the other parts' primitives, leaves out
-    the inliers that are not nearer to this surface by ``GROW_MARGIN`` thresholds."""
+    run of inliers along the axis, so a gap of a few thresholds stops the growth."""
     if not isinstance(model, Cylinder | Cone):
         return model
-    residual = np.abs(model.residual(points))
-    inliers = residual < threshold
-    if others is not None:
-        inliers &= residual + GROW_MARGIN * threshold < others
+    inliers = np.abs(model.residual(points)) < threshold
     if not inliers.any():
         return model
     return type(model).from_theta(model.theta(), points, inliers, threshold)
