@@ -4,7 +4,8 @@
 2. Fitting: every part is fitted with every primitive, with a threshold scaled to the
    part's size; all parts of one primitive go through one ``fit_batch`` call.
 3. Evaluation: each candidate scores the mean distance of *all* the part's points to its
-   closed, bounded surface; the part's own bounding box competes too; the lowest wins.
+   closed, bounded surface (of a hollow part's outside: see below); the part's own
+   bounding box competes too; the lowest wins.
 4. The object is the set of winning primitives (``Decomposition``).
 
 Departure from the thesis: reassignment (``reassign`` rounds, after step 3). Box cuts
@@ -37,8 +38,9 @@ slab, a box wedged between the walls and a body cylinder r 50.8 h 86):
   winners reach at most 5 % out and the candidates turned away 6 % (a box on Arizona's
   base) to several diagonals, so 5 % is a line through a continuum, not a gap. The
   part's own MVBB is always allowed (a part's tilted box need not lie in the root's:
-  up to 12 % out on the mug). The same gate applies to ownership in reassignment (an
-  oversized cone grown over the whole cloud claimed a third of the mug), except where
+  up to 12 % out on the mug). The same gate applies to ownership in reassignment (else
+  the mug's handle leaf was owned by a cylinder r 84 reaching 20 % out and then a cone,
+  grown over the body, and the mug ended as one part), except where
   the best plausible candidate is more than ``OWNER_SLACK`` (2) times as far from its
   part as the part's MVBB, which is then no better a guide: there the lowest mean
   distance owns, as before (the lamp's and Arizona's base leaves, whose fitted boxes
@@ -51,8 +53,8 @@ slab, a box wedged between the walls and a body cylinder r 50.8 h 86):
   between the walls (4.98 mm) over the cylinder RANSAC found, the inner wall (r 41.6,
   9.16 mm): one-sided, a surface midway between two walls is nearest. On its outside
   a cylinder r 50.2 wins (3.25 mm). The mug's body has 32-35 % of its points inside;
-  the built-in objects' parts 0 %, but for the lamp's shade leaf (25 %, the post's
-  top and the ball; its cone still wins).
+  the built-in objects' parts 0 %, but for two of the lamp's leaves at 25 % (the
+  shade's and the ball's, where the cone and the sphere still win).
 - BoxDecomposition takes a clearly narrower cut among near ties, so the mug's handle
   becomes a part (``jaxfit.boxdecomp``).
 
@@ -91,8 +93,8 @@ THRESHOLD_FRACTION = 0.02
 #: Points of a part handed to RANSAC (a random subset when the part is larger).
 MAX_FIT_POINTS = 2048
 #: A fitted candidate whose surface reaches further out of the object's bounding box
-#: (the root MVBB) than this fraction of the box's diagonal can neither win its part nor
-#: claim points in reassignment.
+#: (the root MVBB) than this fraction of the box's diagonal cannot win its part, nor
+#: (but see ``OWNER_SLACK``) claim points in reassignment.
 MAX_OVERSHOOT = 0.05
 #: A part is hollow when at least this fraction of its points lie deeper than
 #: ``HOLLOW_DEPTH`` thresholds inside its convex hull (an inner wall): it is fitted and
