@@ -93,3 +93,27 @@ def test_sources_and_errors(tmp_path):
         decompose(mesh, gain=1.5)
     with pytest.raises(ValueError, match="unknown shape"):
         decompose(mesh, shapes=("torus",))
+
+
+def test_graspit_hollow_mug_is_a_body_cylinder_and_a_handle(data_dir):
+    # mug.iv: a hollow mug (inner and outer wall, a lip, a rounded bottom) with a loop
+    # handle on the -x side. Truth (MANIFEST.md): body cylinder r 50, h 100, axis y,
+    # centred (3, -10, 0); handle centred (-52, -10, 0), reaching to x = -78.
+    from jaxfit.decompose import load_source
+
+    points = load_source(data_dir / "graspit" / "mug.iv", num_points=20000, seed=0)
+    result = decompose(points, gain=0.96, key=0)
+    assert len(result.parts) == 2
+    body, handle = sorted(result.parts, key=lambda p: p.indices.size, reverse=True)
+    assert isinstance(body.model, Cylinder)
+    assert body.model.radius == pytest.approx(50, rel=0.05)
+    assert abs(body.model.axis[1]) > np.cos(np.radians(10))
+    assert 80 < body.model.height < 105
+    # The handle's part is the points outside the body, beyond its wall.
+    assert np.all(points[handle.indices, 0] < -40)
+    assert handle.indices.size > 800
+    # No primitive larger than the object: every winner stays within its bounding box.
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    for part in result.parts:
+        vertices = part.model.to_mesh().vertices
+        assert np.all(vertices > lo - 0.05 * (hi - lo)) and np.all(vertices < hi + 0.05 * (hi - lo))
