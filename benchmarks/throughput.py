@@ -4,11 +4,11 @@ For each primitive, N in {1e3, 1e4, 1e5, 1e6} and H in {1024, 4096}, the same H
 hypotheses are sampled,
 estimated and MSAC-scored three ways, side by side in one run:
 - jaxfit: one call of the jitted kernel (sample -> vmap'd estimate -> chunked scoring),
-  warm (compiled beforehand), median of several calls;
+  warm (compiled beforehand), best of 9 calls;
 - reference, vectorised: NumPy estimates, then the hypotheses scored at once in blocks
-  (at most 1e8 evaluations timed, reported per evaluation);
+  (at most 1e8 evaluations timed, reported per evaluation), best of 3;
 - reference, one at a time: the thesis's loop, estimate then score per hypothesis
-  (timed on a subset of the hypotheses and reported per evaluation).
+  (timed on a subset of the hypotheses and reported per evaluation), best of 3.
 
 Run: ``python -m benchmarks.throughput [--quick]``. Writes
 ``benchmarks/results/throughput.json``, ``throughput.md`` and ``throughput.png``.
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
 import time
 from pathlib import Path
 
@@ -37,12 +36,14 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def _seconds(fn, repeats):
+    """Best of ``repeats`` runs, for every method alike: on this shared machine the
+    spread between runs is load from others, which only ever adds time."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
         times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return min(times)
 
 
 def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int = 0,
@@ -60,7 +61,7 @@ def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int 
         jax.block_until_ready(ransac.batch_best(cls, hypotheses, padded, n, key, thr))
 
     kernel()  # compile
-    t_jax = _seconds(kernel, 5)
+    t_jax = _seconds(kernel, 9)
 
     def fit():  # the whole host loop, same hypothesis count, no refinement
         jaxfit.fit(points, name, threshold=threshold * scale, max_hypotheses=hypotheses,
@@ -79,7 +80,7 @@ def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int 
         thetas, valid = reference.estimate_batch(name, samples[:vec], support)
         reference.score_batch(name, thetas, valid, unit, threshold)
 
-    t_vec = _seconds(vectorised, 1) * hypotheses / vec
+    t_vec = _seconds(vectorised, 3) * hypotheses / vec
 
     def one_at_a_time():
         for sample in samples[:loop_hypotheses]:
@@ -87,7 +88,7 @@ def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int 
             if valid:
                 reference.msac_cost(name, theta, unit, threshold)
 
-    t_loop = _seconds(one_at_a_time, 1) * hypotheses / loop_hypotheses
+    t_loop = _seconds(one_at_a_time, 3) * hypotheses / loop_hypotheses
     evals = hypotheses * n
     return {
         "shape": name, "N": n, "H": hypotheses,
