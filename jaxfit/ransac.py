@@ -60,7 +60,8 @@ LO_POINTS = 2048
 #: squared error by less than LM_GAIN (relative) or after LM_REFUSALS refused steps in a
 #: row: the rest of a fixed count of steps only shaved float noise, and they were most
 #: of the refinement's time (sphere: 1000 clouds of 500 points in fit_batch, refinement
-#: 0.85 -> 0.4 s; one 1e4-point fit, 3.6 -> 1.8 ms). Fewer refusals were too few: a
+#: 0.85 -> 0.4-0.5 s; one 1e4-point fit, 3.6 -> 1.8-2.8 ms, on the loaded machine).
+#: Fewer refusals were too few: a
 #: box's non-smooth residual and a noisy cone refuse several steps, with a rising
 #: damping, before they move on (3 refusals took the cone's median axis error at SN 0.05
 #: with estimated normals from 0.38 to 0.84 deg; 5 leave it at 0.38-0.39).
@@ -208,10 +209,10 @@ def score(cls: type[Model], thetas, valid, points, n_valid, threshold, counts: b
 
     Only the first ``n_chunks`` chunks of CHUNK points are scanned (default: those that
     hold the n_valid points), so the padding of a bucket costs nothing: a 1e4-point cloud
-    in its 16,384 bucket scans 40 chunks, not 64. The count is a traced scalar, which also
-    keeps XLA from unrolling a short scan into one large reduction that runs on one core
-    (measured: 1e3 points, H = 4096). Under ``vmap`` pass one unbatched ``n_chunks`` for
-    all clouds (their largest), so the loop bound stays a scalar.
+    in its 16,384 bucket scans 40 chunks, not 64 (and fit_batch's 500-point clouds in
+    their 1024 bucket 2, not 4: its kernel time halved). Under ``vmap`` pass one
+    unbatched ``n_chunks`` for all clouds (their largest), so the loop bound stays a
+    scalar.
 
     ``gate`` = (normals (B, 3), min_cos): a point also needs |cos| >= min_cos between its
     normal and the surface's to count as an inlier (else it costs threshold^2). The
