@@ -109,3 +109,27 @@ def test_bad_options_raise(kwargs, message):
 def test_bad_points_raise(points, message):
     with pytest.raises(ValueError, match=message):
         jaxfit.estimate_normals(points)
+
+
+def test_closed_form_smallest_eigenvectors_match_eigh():
+    # Random covariances (well separated, near-planar, line-like, isotropic, zero, far
+    # from the origin's scale): the closed form gives eigh's direction where it is
+    # defined, a unit eigenvector of the smallest eigenvalue everywhere.
+    from jaxfit.normals import smallest_eigenvectors
+
+    rng = np.random.default_rng(5)
+    hoods = [rng.normal(size=(4000, 16, 3)) * scale for scale in
+             ([1, 1, 1], [1, 1, 1e-3], [1, 1e-6, 1e-6], [1e4, 1e4, 1e-2])]
+    covs = [np.einsum("bki,bkj->bij", h - h.mean(1, keepdims=True), h - h.mean(1, keepdims=True))
+            for h in hoods]
+    covs.append(np.stack([np.eye(3), np.zeros((3, 3))]))
+    for cov in covs:
+        values, vectors = np.linalg.eigh(cov)
+        got = smallest_eigenvectors(cov)
+        np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, rtol=1e-12)
+        top = np.maximum(values[:, 2], 1e-300)
+        residual = np.linalg.norm(np.einsum("bij,bj->bi", cov, got) - values[:, :1] * got, axis=1)
+        assert np.all(residual <= 1e-9 * top)
+        clear = (values[:, 1] - values[:, 0]) > 1e-3 * top
+        agree = np.abs(np.sum(vectors[clear, :, 0] * got[clear], axis=1))
+        assert np.all(agree > np.cos(np.radians(1e-3)))
