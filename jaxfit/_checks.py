@@ -43,14 +43,6 @@ def cloud(points, name: str = "points") -> np.ndarray:
     return arr
 
 
-def bounds(points: np.ndarray):
-    """(lo (3,), hi (3,)) of points (N, 3), one column at a time: NumPy's axis-0
-    reductions over (N, 3) run an inner loop of length 3 and were 6x slower (10k points:
-    0.5 ms, a tenth of a whole fit)."""
-    lo = np.array([points[:, i].min() for i in range(3)])
-    return lo, np.array([points[:, i].max() for i in range(3)])
-
-
 def points_for(points, cls: type[Model]) -> np.ndarray:
     arr = cloud(points)
     if arr.shape[0] < cls.sample_size:

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import _checks
 from .shapes import Model
-from .shapes._geometry import row_norms
+from .shapes._geometry import column_bounds, row_norms
 
 #: Points per scan step of the scoring kernel; every bucket is a multiple of it.
 CHUNK = 256
@@ -396,9 +396,10 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
 # ----- host side ----------------------------------------------------------------------
 
 
-def _normalise(points: np.ndarray):
-    """Centre (3,) and scale that map the cloud into the unit ball."""
-    lo, hi = _checks.bounds(points)
+def _normalise(points: np.ndarray, bounds=None):
+    """Centre (3,) and scale that map the cloud into the unit ball; ``bounds``: the
+    cloud's (lo, hi) if already known."""
+    lo, hi = column_bounds(points) if bounds is None else bounds
     center = 0.5 * (lo + hi)
     scale = float(row_norms(points - center).max())
     if not scale > 0:
@@ -560,11 +561,10 @@ def _prepare(points, cls, normals, threshold, est, key, index, limits) -> _Cloud
     """Cloud ``index`` of a call, validated; ``key`` is the call's (see ``_normals_key``)."""
     cloud = _checks.points_for(points, cls)
     normals = _checks.normals_for(normals, cloud)
-    center, scale = _normalise(cloud)
+    lo, hi = column_bounds(cloud)
+    center, scale = _normalise(cloud, (lo, hi))
     if threshold is None:
-        lo, hi = _checks.bounds(cloud)
-        diagonal = np.linalg.norm(hi - lo)
-        threshold = DEFAULT_THRESHOLD_FRACTION * diagonal
+        threshold = DEFAULT_THRESHOLD_FRACTION * np.linalg.norm(hi - lo)
     threshold = _checks.positive(threshold, "threshold")
     pool = None
     gated = limits[6] > -1
