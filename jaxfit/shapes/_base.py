@@ -20,7 +20,8 @@ needs as class-level functions:
   normals are oriented only where that can be done. ``estimators`` holds both as
   ``Estimator`` records, and ``default_estimator`` names the one ``fit`` uses.
 - ``canonicalize(theta)``: projects a flat parameter vector back onto the valid set
-  (unit axes, positive radius) after a refinement step.
+  (unit axes, positive radius) after a refinement step. Differentiable: refinement
+  differentiates the residual through it.
 - ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
   height / extents / faces fixed from the inliers after the loop (NumPy, float64).
 

@@ -25,6 +25,9 @@ HISTOGRAM_BINS = 128
 # face spans several bins, then median-filtered over _MEDIAN_BINS to drop lone spikes.
 _SUM_BINS = 3
 _MEDIAN_BINS = 3
+#: Newton steps of ``canonicalize``'s polar factor: each squares the distance from a
+#: rotation, and a refinement step leaves the normals within a few degrees of one.
+POLAR_STEPS = 3
 
 
 
@@ -89,9 +92,13 @@ class Box(Model):
 
     @staticmethod
     def canonicalize(theta):
-        # Nearest rotation (polar decomposition) to the refined normals.
-        u, _, vt = jnp.linalg.svd(theta[:9].reshape(3, 3))
-        return jnp.concatenate([(u @ vt).reshape(-1), theta[9:]])
+        # Nearest rotation to the refined normals (the polar factor), by Newton's
+        # iteration X <- (X + X^-T) / 2: refinement differentiates through this, and the
+        # SVD's derivative is undefined at a rotation (three equal singular values).
+        rot = theta[:9].reshape(3, 3)
+        for _ in range(POLAR_STEPS):
+            rot = 0.5 * (rot + jnp.linalg.inv(rot).T)
+        return jnp.concatenate([rot.reshape(-1), theta[9:]])
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
