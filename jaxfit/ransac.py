@@ -635,9 +635,9 @@ def fit(
         stops falling; the stopping rule then uses the refined inlier count.
     estimator : "thesis" (the thesis's minimal samples: plane 3, sphere 4, cylinder 3,
         cone 4, box 5 points) or "oriented" (points with normals: sphere 2, cylinder 2,
-        cone 3; plane and box have no oriented estimator and use the thesis's). Default:
-        the best measured per shape, ``Model.default_estimator``: oriented for the
-        cylinder and cone, thesis for the others.
+        cone 3, box 2; the plane has no oriented estimator and uses the thesis's).
+        Default: the best measured per shape, ``Model.default_estimator``: oriented for
+        the cylinder, cone and box, thesis for the plane and sphere.
     radius_range : optional (low, high) in the points' units (sphere, cylinder): every
         hypothesis outside it is discarded and refinement never leaves it.
     axis_prior : optional (direction (3,), max_angle_deg): the axis (a plane's normal)

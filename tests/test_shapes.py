@@ -74,24 +74,30 @@ def test_clean_minimal_sample_is_reestimated_exactly(name, rng):
         if isinstance(model, Plane):
             assert abs(abs(theta[:3] @ model.normal) - 1) < 1e-6
         if isinstance(model, Box):
-            normals = theta[:9].reshape(3, 3)
-            assert np.allclose(np.abs(normals @ model.rotation).max(axis=1), 1, atol=1e-5)
-            # offsets come from histogram modes: within one bin of a true face
-            faces = np.abs(normals @ model.rotation) @ (unit_model.extents / 2)
-            mid = normals @ unit_model.center
-            gap = np.minimum(np.abs(theta[9:] - (mid - faces)), np.abs(theta[9:] - (mid + faces)))
-            assert gap.max() < 2 / 128
+            assert_box_faces(theta, model, unit_model)
+
+
+def assert_box_faces(theta, model, unit_model):
+    """A box hypothesis (normalised frame) has the model's face normals, and offsets
+    (histogram modes) within one bin of a true face."""
+    normals = theta[:9].reshape(3, 3)
+    assert np.allclose(np.abs(normals @ model.rotation).max(axis=1), 1, atol=1e-5)
+    faces = np.abs(normals @ model.rotation) @ (unit_model.extents / 2)
+    mid = normals @ unit_model.center
+    gap = np.minimum(np.abs(theta[9:] - (mid - faces)), np.abs(theta[9:] - (mid + faces)))
+    assert gap.max() < 2 / 128
 
 
 ORIENTED = [name for name in SHAPES if "oriented" in REGISTRY[name].estimators]
 
 
 def test_oriented_estimators_exist_where_documented():
-    assert ORIENTED == ["cone", "cylinder", "sphere"]
-    assert [REGISTRY[n].oriented_sample_size for n in ORIENTED] == [3, 2, 2]
-    # plane and box fall back to the thesis's estimator; an unknown name is an error
+    assert ORIENTED == ["box", "cone", "cylinder", "sphere"]
+    assert [REGISTRY[n].oriented_sample_size for n in ORIENTED] == [2, 3, 2, 2]
+    # the plane falls back to the thesis's estimator; an unknown name is an error
     assert Plane.estimator("oriented").name == "thesis"
     assert Cylinder.estimator().name == "oriented" and Sphere.estimator().name == "thesis"
+    assert Box.estimator().name == "oriented"
     with pytest.raises(ValueError, match="unknown estimator"):
         Cone.estimator("schnabel")
 
@@ -100,6 +106,8 @@ def test_oriented_estimators_exist_where_documented():
 def test_oriented_sample_is_reestimated_exactly_whatever_the_normals_signs(name, rng):
     cls = REGISTRY[name]
     k = cls.oriented_sample_size
+    if name == "box":
+        return _oriented_box_is_reestimated(rng)
     for _ in range(5):
         model = random_model(name, rng)
         points, normals = model.sample(k, rng)
@@ -121,6 +129,27 @@ def test_oriented_sample_is_reestimated_exactly_whatever_the_normals_signs(name,
             assert theta[3:6] @ model.axis > 0
 
 
+def _oriented_box_is_reestimated(rng):
+    """Two points on adjacent faces, normals of either sign: the box's three face normals,
+    offsets from the histogram of the support (as the thesis's box)."""
+    for _ in range(5):
+        model = random_model("box", rng)
+        half, rot = model.extents / 2, model.rotation
+        local = rng.uniform(-1, 1, (2, 3)) * half
+        local[0, 0], local[1, 1] = half[0], -half[1]
+        points = local @ rot.T + model.center
+        normals = np.stack([rot[:, 0], -rot[:, 1]]) * rng.choice([-1.0, 1.0], (2, 1))
+        support = model.sample(1024, rng)[0]
+        center, scale = ransac._normalise(support)
+        unit_points, unit_support = (points - center) / scale, (support - center) / scale
+        thetas, valid = ransac.estimate_batch(Box, jnp.asarray(unit_points)[None],
+                                              jnp.asarray(unit_support),
+                                              jnp.asarray(normals)[None], "oriented")
+        assert bool(valid[0])
+        assert_box_faces(np.asarray(thetas[0], np.float64), model,
+                         model.rescaled(1 / scale, -center / scale))
+
+
 @pytest.mark.parametrize("name", ORIENTED)
 def test_oriented_degenerate_samples_are_invalid_without_nan(name, rng):
     cls = REGISTRY[name]
@@ -132,7 +161,8 @@ def test_oriented_degenerate_samples_are_invalid_without_nan(name, rng):
         n = np.stack([[np.cos(a), np.sin(a), 0.0] for a in (0.1, 1.3, 2.9)])
         cases.append((n * 0.4, n))
     samples, normals = (jnp.asarray(np.stack(c)) for c in zip(*cases, strict=True))
-    thetas, valid = ransac.estimate_batch(cls, samples, None, normals, "oriented")
+    support = jnp.asarray(rng.uniform(-1, 1, (64, 3)))  # read by the box only
+    thetas, valid = ransac.estimate_batch(cls, samples, support, normals, "oriented")
     assert not np.any(np.asarray(valid))
     assert np.all(np.isfinite(np.asarray(thetas)))
 
