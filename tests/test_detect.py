@@ -12,6 +12,7 @@ from jaxfit.synthetic import scene
 
 SCENES = [  # 3 to 6 primitives: the floor plus objects touching it
     (200, ["sphere", "lying_cylinder"]),
+    (204, ["lying_cylinder", "lying_cylinder"]),  # undersides in the floor's threshold band
     (302, ["cone", "cone", "cone"]),
     (400, ["cone", "sphere", "cylinder", "lying_cylinder"]),
     (501, ["cone", "cone", "cylinder", "lying_cylinder", "cylinder"]),
