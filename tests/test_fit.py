@@ -95,6 +95,18 @@ def test_stopping_rule_values():
     assert required_hypotheses(1.0, 3, 0.99) == 1
 
 
+def test_refinement_rows_cover_the_whole_cloud():
+    from jaxfit.ransac import lo_rows, spread_rows
+
+    assert [lo_rows(n) for n in (10, 300, 500, 1024, 1500, 50_000)] == [256, 512, 512, 1024,
+                                                                       2048, 2048]
+    rows = np.asarray(spread_rows(3000, 2048))  # more points than rows: spread over all
+    assert len(np.unique(rows)) == 2048 and rows.min() == 0 and 2990 <= rows.max() < 3000
+    assert np.all(np.diff(rows) >= 1)
+    rows = np.asarray(spread_rows(500, 512))  # fewer: every point, then padding rows
+    np.testing.assert_array_equal(rows, np.arange(512))
+
+
 def test_sample_indices_are_exactly_floor_of_bits_times_n():
     # The kernel's one-word index draw equals floor(bits * n / 2^32) computed in uint64,
     # at the edges of both factors' 16-bit halves too, so every index in [0, n) is reachable.
