@@ -46,13 +46,46 @@ def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.nda
 def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     """Unit normals (M, 3), unoriented: the least-variance direction of each
     neighbourhood points[neighbours] (M, k, 3)."""
-    out = np.empty((len(neighbours), 3), points.dtype)
-    for start in range(0, len(neighbours), BLOCK):
-        hood = points[neighbours[start:start + BLOCK]]  # (B, k, 3)
-        hood = hood - hood.mean(axis=1, keepdims=True)
-        cov = np.einsum("bki,bkj->bij", hood, hood)  # (B, 3, 3)
-        out[start:start + BLOCK] = smallest_eigenvectors(cov)
+    return _pca_normals([points], [neighbours])
+
+
+def _pca_normals(clouds, neighbours) -> np.ndarray:
+    """pca_normals of several clouds (N_i, 3) with their neighbours (M_i, k) (one k),
+    concatenated (sum M_i, 3): the eigen-solver's fixed cost (some 50 NumPy calls) is
+    paid once per block of neighbourhoods, not once per cloud."""
+    hoods = [(cloud, rows) for cloud, rows in zip(clouds, neighbours, strict=True)]
+    total = sum(len(rows) for _, rows in hoods)
+    out = np.empty((total, 3), np.result_type(*(c.dtype for c in clouds)))
+    start = 0
+    while hoods:  # fill blocks of at most BLOCK neighbourhoods, cloud after cloud
+        block, size = [], 0
+        while hoods and size < BLOCK:
+            cloud, rows = hoods.pop(0)
+            if size + len(rows) > BLOCK:
+                rows, rest = rows[:BLOCK - size], rows[BLOCK - size:]
+                hoods.insert(0, (cloud, rest))
+            block.append(cloud[rows])  # (m, k, 3)
+            size += len(rows)
+        out[start:start + size] = smallest_eigenvectors(_covariances(np.concatenate(block)))
+        start += size
     return out
+
+
+def _covariances(hood: np.ndarray) -> np.ndarray:
+    """Scatter matrices (B, 3, 3) of neighbourhoods (B, k, 3), from sums of products of
+    coordinate arrays (3x faster than centring and an einsum over (B, k, 3)). Each
+    neighbourhood is first shifted to its first point, so the sums lose no digits on a
+    cloud far from the origin."""
+    x, y, z = (hood[:, :, i] - hood[:, :1, i] for i in range(3))  # (B, k) each
+    k = hood.shape[1]
+    sx, sy, sz = x.sum(axis=1), y.sum(axis=1), z.sum(axis=1)
+
+    def scatter(u, v, su, sv):
+        return np.einsum("bk,bk->b", u, v) - su * sv / k
+
+    xx, yy, zz = scatter(x, x, sx, sx), scatter(y, y, sy, sy), scatter(z, z, sz, sz)
+    xy, xz, yz = scatter(x, y, sx, sy), scatter(x, z, sx, sz), scatter(y, z, sy, sz)
+    return np.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], axis=1).reshape(-1, 3, 3)
 
 
 def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
@@ -196,6 +229,22 @@ def normals_at(points: np.ndarray, indices: np.ndarray, k: int = 16) -> np.ndarr
     samples from a pool of points and never reads the others' normals."""
     k = _check_k(k, len(points))
     return pca_normals(points, knn(points, k, points[indices]))
+
+
+def normals_at_many(clouds, indices, ks) -> list[np.ndarray]:
+    """``normals_at(clouds[i], indices[i], ks[i])`` for every cloud: one KD-tree each,
+    one batched PCA per neighbourhood size. fit_batch's 1000 clouds of 500 points:
+    2.1 -> 1.2 ms per cloud (the PCA's fixed cost had been half of it)."""
+    ks = [_check_k(k, len(c)) for c, k in zip(clouds, ks, strict=True)]
+    neighbours = [knn(c, k, c[i]) for c, i, k in zip(clouds, indices, ks, strict=True)]
+    out = [None] * len(clouds)
+    for k in set(ks):
+        which = [i for i, ki in enumerate(ks) if ki == k]
+        normals = _pca_normals([clouds[i] for i in which], [neighbours[i] for i in which])
+        splits = np.cumsum([len(neighbours[i]) for i in which])[:-1]
+        for i, part in zip(which, np.split(normals, splits), strict=True):
+            out[i] = part
+    return out
 
 
 def estimate_normals(points, k: int = 16, *, orient: str | None = "mst",

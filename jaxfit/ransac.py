@@ -509,6 +509,7 @@ class _Cloud:
     scale: float
     threshold: float  # in the cloud's units
     limits: np.ndarray  # (7,) the user's bounds (limits_for), in the cloud's units
+    wanted: np.ndarray | None = None  # indices whose normals are still to be estimated
 
     @property
     def gated(self) -> bool:
@@ -581,7 +582,9 @@ def limits_for(cls: type[Model], radius_range=None, axis_prior=None,
 
 
 def _prepare(points, cls, normals, threshold, est, key, index, limits) -> _Cloud:
-    """Cloud ``index`` of a call, validated; ``key`` is the call's (see ``_normals_key``)."""
+    """Cloud ``index`` of a call, validated; ``key`` is the call's (see ``_normals_key``).
+    Normals the fit needs and was not given are left for ``_estimate_normals``: its
+    ``normals`` is None and ``wanted`` holds the indices to estimate them at."""
     cloud = _checks.points_for(points, cls)
     normals = _checks.normals_for(normals, cloud)
     lo, hi = column_bounds(cloud)
@@ -589,26 +592,34 @@ def _prepare(points, cls, normals, threshold, est, key, index, limits) -> _Cloud
     if threshold is None:
         threshold = DEFAULT_THRESHOLD_FRACTION * np.linalg.norm(hi - lo)
     threshold = _checks.positive(threshold, "threshold")
-    pool = None
+    pool = wanted = None
     gated = limits[6] > -1
     if not (est.uses_normals or gated):
         normals = None
     elif normals is None and gated:  # the gate reads every point's normal
-        from .normals import normals_at
-
-        normals = normals_at(cloud, np.arange(len(cloud)), k=min(16, len(cloud)))
+        wanted = np.arange(len(cloud))
     elif normals is None:
-        from .normals import normals_at  # scipy's KD-tree: imported only when needed
-
         if len(cloud) > NORMAL_POOL:
             # Derived here only: two fold_ins per cloud cost ~0.6 ms, more than a whole
             # kernel call for a small cloud in fit_batch.
             pool_key = jax.random.key_data(_normals_key(key, index))
             rng = np.random.default_rng(np.asarray(pool_key))
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
-        normals = normals_at(cloud, np.arange(len(cloud)) if pool is None else pool,
-                             k=min(16, len(cloud)))
-    return _Cloud(cloud, normals, pool, center, scale, threshold, limits)
+        wanted = np.arange(len(cloud)) if pool is None else pool
+    return _Cloud(cloud, normals, pool, center, scale, threshold, limits, wanted)
+
+
+def _estimate_normals(clouds: list[_Cloud]):
+    """Fill in the normals ``_prepare`` left wanted, for all clouds in one batched call
+    (scipy's KD-tree: imported only when needed)."""
+    todo = [c for c in clouds if c.wanted is not None]
+    if todo:
+        from .normals import normals_at_many
+
+        found = normals_at_many([c.points for c in todo], [c.wanted for c in todo],
+                                [min(16, len(c.points)) for c in todo])
+        for cloud, normals in zip(todo, found, strict=True):
+            cloud.normals, cloud.wanted = normals, None
 
 
 def fit(
@@ -749,6 +760,7 @@ def fit_batch(
         min_hypotheses = est.min_hypotheses
     elif not (isinstance(min_hypotheses, int) and min_hypotheses >= 0):
         raise ValueError(f"min_hypotheses must be a non-negative integer, got {min_hypotheses!r}")
+    _estimate_normals(prepared)
 
     thetas, drawn, status = _search(cls, est, prepared, key, confidence, max_hypotheses,
                                     batch_size, max_stall, min_hypotheses, refine)

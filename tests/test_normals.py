@@ -133,3 +133,26 @@ def test_closed_form_smallest_eigenvectors_match_eigh():
         clear = (values[:, 1] - values[:, 0]) > 1e-3 * top
         agree = np.abs(np.sum(vectors[clear, :, 0] * got[clear], axis=1))
         assert np.all(agree > np.cos(np.radians(1e-3)))
+
+
+def test_batched_normals_equal_one_cloud_at_a_time(monkeypatch):
+    """fit_batch estimates all clouds' normals in one call: same normals as one call per
+    cloud, whatever the neighbourhood sizes and however the blocks split the clouds, and
+    right far from the origin (the covariances' sums are taken about each neighbourhood)."""
+    import jaxfit.normals as nm
+
+    rng = np.random.default_rng(3)
+    spheres = [Sphere(rng.normal(size=3) * 1e4, 1.0) for _ in range(12)]
+    clouds = [m.sample(int(n), rng)[0] for m, n in zip(spheres, rng.integers(5, 400, 12),
+                                                       strict=True)]
+    indices = [np.sort(rng.choice(len(c), max(1, len(c) // 2), replace=False)) for c in clouds]
+    ks = [min(16, len(c)) for c in clouds]
+    one = [nm.normals_at(c, i, k) for c, i, k in zip(clouds, indices, ks, strict=True)]
+    monkeypatch.setattr(nm, "BLOCK", 100)  # blocks end inside clouds
+    many = nm.normals_at_many(clouds, indices, ks)
+    for a, b, c, i, m in zip(one, many, clouds, indices, spheres, strict=True):
+        assert b.shape == (len(i), 3)
+        np.testing.assert_allclose(np.abs(np.sum(a * b, axis=1)), 1.0, atol=1e-9)
+        if len(c) >= 200:  # dense enough for k = 16 to see a smooth surface
+            radial = (c[i] - m.center) / m.radius
+            assert np.median(np.abs(np.sum(b * radial, axis=1))) > np.cos(np.radians(5))
