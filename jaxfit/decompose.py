@@ -66,10 +66,10 @@ slab, a box wedged between the walls and a body cylinder r 50.8 h 86):
   0-3 all give the body cylinder (r 50.7-51.0) and the handle.
 
 Result on the mug (``python -m benchmarks.decomposition``, gain 0.96, 20,000 points):
-two parts, the body a cylinder r 50.4 h 89, axis 7 deg from y (truth r 50, h 100: the lip is set
-in by 6 mm and the bottom is rounded, so the outer wall's cylinder stops short) and the
-handle its bounding box, 78 x 20 x 20 mm. The Arizona object, the phone, the soup can
-and the cracker box come out as before; the duck and Homer change (5 and 4 parts
+two parts, the body a cylinder r 50.4 h 89, axis 7 deg from y (truth r 50, h 100: the
+lip is set in by 6 mm and the bottom is rounded, so the outer wall's cylinder stops
+short) and the handle its bounding box, 78 x 20 x 20 mm. The Arizona object, the phone,
+the soup can and the cracker box come out as before; the duck and Homer change (5 and 4 parts
 instead of 4 and 2, without the oversized cone the duck had). Measured and not kept:
 the fraction of a candidate's surface with points near it (coverage) does not tell the
 mug's wedged box (72 % covered) from the body cylinder (86 %); merging a part into

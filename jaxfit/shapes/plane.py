@@ -58,15 +58,18 @@ class Plane(Model):
     def from_theta(cls, theta, points, inliers, threshold):
         normal = g.sign_canonical(theta[:3])
         offset = theta[3] * (1.0 if normal @ theta[:3] > 0 else -1.0)
-        near = points[inliers]
-        on_plane = near - np.outer(near @ normal + offset, normal)
         # The patch: around the inliers' median, out to where they thin out (strays in
-        # the plane's slab far from the patch are sparse and are left outside).
-        columns = on_plane.T  # (3, M): per-coordinate reductions (see g.row_norms)
-        center = np.median(columns, axis=1)
-        spread = g.row_norms(on_plane - center)
+        # the plane's slab far from the patch are sparse and are left outside). In the
+        # plane's own 2-D coordinates: two 1-D medians instead of a gather of (M, 3) rows
+        # and three (this took 1.2 ms of a 4-5 ms fit of 10k points before).
+        in_plane = g.frame(normal)[:, :2]  # (3, 2)
+        u, v = (points @ in_plane[:, i] for i in range(2))
+        u, v = u[inliers], v[inliers]
+        mu, mv = np.median(u), np.median(v)
+        spread = np.hypot(u - mu, v - mv)
         _, radius = g.main_interval(spread, g.GAP_THRESHOLDS * threshold)
-        center = columns[:, spread <= radius].mean(axis=1)
+        patch = spread <= radius
+        center = in_plane @ np.array([u[patch].mean(), v[patch].mean()]) - offset * normal
         return cls(normal, np.float64(offset), center, np.float64(radius))
 
     def theta(self):
