@@ -245,6 +245,19 @@ def test_oriented_estimator_needs_far_fewer_hypotheses_on_incomplete_models(name
         assert result.num_hypotheses <= 1024
 
 
+def test_oriented_box_needs_far_fewer_hypotheses_among_many_outliers():
+    from jaxfit.scenarios import make
+
+    case = make("box", "RN", 0.6, seed=3)
+    threshold = 0.01 * case.size
+    oriented = jaxfit.fit(case.points, "box", threshold=threshold)  # the default
+    thesis = jaxfit.fit(case.points, "box", threshold=threshold, estimator="thesis")
+    assert oriented.num_hypotheses * 8 <= thesis.num_hypotheses
+    for result in (oriented, thesis):
+        sides = np.sort(result.model.extents) / np.sort(case.model.extents) - 1
+        assert np.abs(sides).max() < 0.01
+
+
 @pytest.mark.parametrize("name", ["cylinder", "cone", "plane"])
 def test_refinement_reaches_the_least_squares_fit(name):
     """With every point well inside the threshold (twice the noise amplitude), the MSAC
