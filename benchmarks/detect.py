@@ -88,21 +88,42 @@ def _palette(n):
     return [cmap(i % 10) for i in range(n)]
 
 
+def shared_colours(truth_labels, labels) -> list[int]:
+    """Palette index per detection: that of the true primitive most of its points belong
+    to, so a primitive and its detection share a colour (largest detections choose
+    first); a detection whose primitive is already taken, or that covers none, gets a
+    colour after the truth's."""
+    n_truth = max(truth_labels.max() + 1, 0)
+    out, taken, fresh = [0] * max(labels.max() + 1, 0), set(), n_truth
+    for j in sorted(range(len(out)), key=lambda j: -np.sum(labels == j)):
+        owners = truth_labels[(labels == j) & (truth_labels >= 0)]
+        t = int(np.bincount(owners).argmax()) if len(owners) else -1
+        if t >= 0 and t not in taken:
+            out[j] = t
+            taken.add(t)
+        else:
+            out[j], fresh = fresh, fresh + 1
+    return out
+
+
 def draw(points, truth_labels, labels, names, title, path):
-    """Two 3-D scatter plots side by side: truth and detection (grey: unassigned)."""
+    """Two 3-D scatter plots side by side: truth and detection (grey: unassigned), a
+    detection in the colour of the true primitive it mostly covers."""
     plt = pyplot()
 
     fig = plt.figure(figsize=(12, 6))
+    detection_colours = shared_colours(truth_labels, labels)
+    palette = _palette(max([truth_labels.max() + 1, *[c + 1 for c in detection_colours]]))
     for col, (lab, heading) in enumerate([(truth_labels, "ground truth"),
                                           (labels, "jaxfit.detect")]):
         ax = fig.add_subplot(1, 2, col + 1, projection="3d")
-        colours = _palette(max(lab.max() + 1, 1))
         grey = lab < 0
         ax.scatter(*points[grey].T, s=2, c="lightgrey")
         for j in range(lab.max() + 1):
             sel = lab == j
             name = names[col][j] if j < len(names[col]) else str(j)
-            ax.scatter(*points[sel].T, s=3, color=colours[j], label=f"{j}: {name}")
+            colour = palette[j if col == 0 else detection_colours[j]]
+            ax.scatter(*points[sel].T, s=3, color=colour, label=f"{j}: {name}")
         ax.set_title(f"{title}: {heading}")
         ax.legend(loc="upper left", fontsize=7, markerscale=3)
         ax.set_box_aspect(np.ptp(points, axis=0))
