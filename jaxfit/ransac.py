@@ -168,6 +168,21 @@ def spread_rows(n_valid, count: int):
     return jnp.where(n_valid >= count, spread, jnp.arange(count))
 
 
+def subset_rows(mask: np.ndarray, multiple: int = 1):
+    """The rows a batched call runs on for the slots where mask (S,) holds: None (all S
+    slots) or those slots, padded by repeating the first, to the smallest of S / 16,
+    S / 256, ... (a multiple of ``multiple``, the device count) that holds them. A few
+    hard clouds among many easy ones then do not keep every cloud's kernel and
+    refinement running, and at most a few more sizes compile."""
+    live = np.flatnonzero(mask)
+    size = len(mask)
+    while (size >> 4) >= max(len(live), 1) and (size >> 4) % multiple == 0:
+        size >>= 4
+    if size == len(mask):
+        return None
+    return np.concatenate([live, np.full(size - len(live), live[0])])
+
+
 def bucket_size(n: int) -> int:
     """Padded point count for a cloud of n points: a power of two, at least MIN_BUCKET."""
     return max(MIN_BUCKET, 1 << (int(n) - 1).bit_length())
@@ -820,18 +835,25 @@ def _search(cls, est, clouds, key, seed, confidence, max_hypotheses, batch_size,
     put = _placer(devices)
     built = [cloud.kernel_rows() for cloud in clouds]  # padding slots reuse cloud 0's
     rows = [built[i] for i in order]
-    padded = put(np.stack([_padded(unit, dtype, size) for unit, _, _ in rows]))
-    normals = None
     gated = clouds[0].gated  # one normal_angle for all clouds of a call
-    if est.uses_normals or gated:
-        normals = put(np.stack([_padded(nrm, dtype, size) for _, nrm, _ in rows]))
-    n = put(np.asarray([clouds[i].points.shape[0] for i in order], np.int32))
-    n_sample = put(np.asarray([m for _, _, m in rows], np.int32))
-    unit_threshold = put(np.asarray([clouds[i].threshold / clouds[i].scale for i in order],
-                                    dtype))
-    cloud_keys = put(_cloud_keys(key, slots) if seed is None
-                     else _seed_cloud_keys(int(seed), jax.config.jax_default_prng_impl, slots))
-    limits = put(np.stack([clouds[i].unit_limits() for i in order]).astype(dtype))
+    host = {  # per-slot arrays, clouds first
+        "points": np.stack([_padded(unit, dtype, size) for unit, _, _ in rows]),
+        "normals": (np.stack([_padded(nrm, dtype, size) for _, nrm, _ in rows])
+                    if est.uses_normals or gated else None),
+        "n": np.asarray([clouds[i].points.shape[0] for i in order], np.int32),
+        "n_sample": np.asarray([m for _, _, m in rows], np.int32),
+        "keys": (_cloud_keys(key, slots) if seed is None
+                 else _seed_cloud_keys(int(seed), jax.config.jax_default_prng_impl, slots)),
+        "threshold": np.asarray([clouds[i].threshold / clouds[i].scale for i in order], dtype),
+        "limits": np.stack([clouds[i].unit_limits() for i in order]).astype(dtype),
+    }
+    every = {name: None if a is None else put(a) for name, a in host.items()}
+
+    def on(slots_of):
+        """The per-slot arrays for the rows ``slots_of`` (None: every slot), placed."""
+        if slots_of is None:
+            return every
+        return {name: None if a is None else put(a[slots_of]) for name, a in host.items()}
 
     best_theta = np.full((slots, cls.num_params), np.nan)
     best_cost, best_raw = np.full(slots, np.inf), np.full(slots, np.inf)
@@ -842,23 +864,40 @@ def _search(cls, est, clouds, key, seed, confidence, max_hypotheses, batch_size,
     active = np.arange(slots) < count
     batch = 0
     while active.any() and batch * batch_size < max_hypotheses:
-        theta, cost, found, _ = _batch_best_many(cls, batch_size, est.name, padded, normals, n,
-                                                 n_sample, cloud_keys, unit_threshold, limits,
+        searching = subset_rows(active, len(devices))
+        a = on(searching)
+        theta, cost, found, _ = _batch_best_many(cls, batch_size, est.name, a["points"],
+                                                 a["normals"], a["n"], a["n_sample"],
+                                                 a["keys"], a["threshold"], a["limits"],
                                                  batch, gated)
+        where = np.arange(slots) if searching is None else searching  # slot of each row
         batch += 1
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
         # so a rough but right one is not hidden behind a polished wrong one).
-        raw = np.asarray(cost, np.float64)[:, 0]  # (sliced on the host: see below)
+        raw = np.full(slots, np.inf)
+        raw[where] = np.asarray(cost, np.float64)[:, 0]  # (sliced on the host: see below)
         improved = active & (raw < best_raw)
         best_raw = np.where(improved, raw, best_raw)
         if refine and improved.any():
-            theta, cost, found = _refine_many(cls, theta, padded, n, unit_threshold, limits,
-                                              normals if gated else None, lo_rows(n_max))
+            polishing = subset_rows(improved, len(devices))
+            if polishing is not None or searching is not None:
+                row = np.full(slots, -1)
+                row[where[::-1]] = np.arange(len(where))[::-1]  # first row of each slot
+                starts = np.asarray(theta)[row[polishing if polishing is not None else
+                                               np.arange(slots)]]
+                theta, a = put(starts), on(polishing)
+            theta, cost, found = _refine_many(cls, theta, a["points"], a["n"], a["threshold"],
+                                              a["limits"], a["normals"] if gated else None,
+                                              lo_rows(n_max))
+            where = np.arange(slots) if polishing is None else polishing
         else:
             # (indexing on the host: a JAX slice per array cost ~0.2 ms each)
-            theta, cost, found = (np.asarray(a)[:, 0] for a in (theta, cost, found))
-        cost, found, theta = np.asarray(cost, np.float64), np.asarray(found), np.asarray(theta)
+            theta, cost, found = (np.asarray(x)[:, 0] for x in (theta, cost, found))
+        full = np.full((slots, cls.num_params), np.nan), np.full(slots, np.inf), np.zeros(slots)
+        for out, value in zip(full, (theta, cost, found), strict=True):
+            out[where] = np.asarray(value)
+        theta, cost, found = full
         better = improved & (cost < best_cost)
         best_theta[better], best_cost[better] = theta[better], cost[better]
         best_count[better] = found[better]

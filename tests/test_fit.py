@@ -217,6 +217,38 @@ def test_fit_batch_matches_fit_cloud_by_cloud():
         assert result.status is Status.CONVERGED
 
 
+def test_few_hard_clouds_run_alone_and_give_the_same_results(monkeypatch):
+    """After the first batch only the hard clouds (75 % outliers) keep searching; the
+    kernel and refinement then run on them alone (subset_rows), with the results of
+    running every cloud."""
+    from jaxfit import ransac
+
+    mask = np.zeros(64, bool)
+    mask[[5, 40]] = True
+    np.testing.assert_array_equal(ransac.subset_rows(mask), [5, 40, 5, 5])  # 64 / 16 rows
+    mask[:20] = True
+    assert ransac.subset_rows(mask) is None  # 21 do not fit in 4: every slot
+    assert ransac.subset_rows(mask[:8]) is None  # too few slots to split
+    one = np.eye(1, 256, 7, dtype=bool)[0]
+    assert len(ransac.subset_rows(one, 2)) == 16  # 256 / 16; 1 is no multiple of 2 devices
+
+    clouds = [demo_cloud("sphere", count=500, outlier_ratio=0.75 if i in (3, 11) else 0.3,
+                         seed=i)[0] for i in range(17)]
+    calls = []
+    kernel = ransac._batch_best_many
+    monkeypatch.setattr(ransac, "_batch_best_many",
+                        lambda *a, **k: calls.append(a[3].shape[0]) or kernel(*a, **k))
+    subset = jaxfit.fit_batch(clouds, "sphere", key=2)
+    monkeypatch.setattr(ransac, "subset_rows", lambda mask, multiple=1: None)
+    every = jaxfit.fit_batch(clouds, "sphere", key=2)
+    assert calls[0] == 32 and 2 in calls  # later batches ran on 2 rows of the 32
+    assert [r.num_hypotheses for r in subset] == [r.num_hypotheses for r in every]
+    assert max(r.num_hypotheses for r in subset) > 256
+    for a, b in zip(subset, every, strict=True):
+        np.testing.assert_array_equal(a.model.center, b.model.center)
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+
+
 def test_fit_batch_errors_name_the_cloud():
     good = demo_cloud("sphere", seed=0)[0]
     with pytest.raises(ValueError, match="cloud 1: .*NaN"):
