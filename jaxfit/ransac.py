@@ -365,7 +365,8 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
 
     Each round takes the current inliers (within LO_WIDEN thresholds) and runs ``steps``
     Levenberg-Marquardt steps on their signed geometric residuals (projected back with
-    ``cls.canonicalize``). Rounds go on while they lower the MSAC cost over all points
+    ``cls.canonicalize``), or the shape's closed-form ``least_squares`` fit to them where
+    it has one (the plane). Rounds go on while they lower the MSAC cost over all points
     (at most ``max_rounds``), so the inlier set can grow from a rough hypothesis to the
     whole surface, and refinement never makes the model worse by the loop's own measure.
     The steps see ``rows`` points (default and at most LO_POINTS; see ``lo_rows`` and
@@ -418,10 +419,15 @@ def refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds
         th, cost, _, rounds = carry
         r = cls.theta_residual(th, p, jnp)
         weight = (live & (jnp.abs(r) < LO_WIDEN * threshold) & agrees(th)).astype(th.dtype)
-        init = (th, jnp.asarray(1e-3, th.dtype), jnp.sum((r * weight) ** 2), weight, 0, 0)
-        candidate = jax.lax.while_loop(stepping, lm_step, init)[0]
+        if cls.least_squares is None:
+            init = (th, jnp.asarray(1e-3, th.dtype), jnp.sum((r * weight) ** 2), weight, 0, 0)
+            candidate = jax.lax.while_loop(stepping, lm_step, init)[0]
+        else:  # the same least-squares fit, in closed form
+            candidate = cls.canonicalize(cls.least_squares(sub, weight))
         new_cost = _msac(cls, candidate, points, n_valid, threshold, gate, n_chunks)[0]
         better = new_cost < cost * (1.0 - LO_GAIN)
+        if limits is not None:
+            better &= cls.within(candidate, limits)
         return (jnp.where(better, candidate, th), jnp.where(better, new_cost, cost), better,
                 rounds + 1)
 

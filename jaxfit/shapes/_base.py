@@ -22,6 +22,9 @@ needs as class-level functions:
 - ``canonicalize(theta)``: projects a flat parameter vector back onto the valid set
   (unit axes, positive radius) after a refinement step. Differentiable: refinement
   differentiates the residual through it.
+- ``least_squares(points, weights) -> theta`` (optional, else None): the weighted
+  geometric least-squares fit (points (S, 3), weights (S,)) in closed form; refinement
+  uses it instead of Levenberg-Marquardt steps.
 - ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
   height / extents / faces fixed from the inliers after the loop (NumPy, float64).
 
@@ -143,6 +146,8 @@ class Model:
     @staticmethod
     def canonicalize(theta):
         return theta
+
+    least_squares = None  # see the module docstring
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):  # pragma: no cover - abstract

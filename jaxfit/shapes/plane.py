@@ -54,6 +54,16 @@ class Plane(Model):
         normal, length = g.safe_normalize(theta[:3])
         return jnp.concatenate([normal, theta[3:] / jnp.where(length > 0, length, 1.0)])
 
+    @staticmethod
+    def least_squares(points, weights):
+        # Through the weighted centroid, normal along the scatter's least direction: the
+        # least-squares plane in one step, where LM took several (refinement of a
+        # 10k-point plane: see ransac.refine_theta).
+        centroid = weights @ points / jnp.sum(weights)
+        spread = (points - centroid) * jnp.sqrt(weights)[:, None]
+        normal = jnp.linalg.eigh(spread.T @ spread)[1][:, 0]
+        return jnp.concatenate([normal, -(normal @ centroid)[None]])
+
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
         normal = g.sign_canonical(theta[:3])
