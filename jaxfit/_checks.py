@@ -85,10 +85,17 @@ def _seed_key(seed: int, impl: str):
     return jax.random.key(seed)
 
 
+def seed_of(key) -> int | None:
+    """The int seed ``key`` is (reduced to 32 bits), or None for a JAX key."""
+    if isinstance(key, numbers.Integral) and not isinstance(key, bool):
+        return int(key) % (2**32)
+    return None
+
+
 def prng_key(key):
     """A JAX PRNG key from an int seed or a key (typed, or a raw uint32 pair)."""
-    if isinstance(key, numbers.Integral) and not isinstance(key, bool):
-        return _seed_key(int(key) % (2**32), jax.config.jax_default_prng_impl)
+    if (seed := seed_of(key)) is not None:
+        return _seed_key(seed, jax.config.jax_default_prng_impl)
     if isinstance(key, jax.Array):
         if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape == ():
             return key

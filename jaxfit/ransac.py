@@ -780,7 +780,7 @@ def fit_batch(
         thresholds = [thresholds] * len(clouds)
     if len(thresholds) != len(clouds):
         raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
-    seed = key if isinstance(key, numbers.Integral) and not isinstance(key, bool) else None
+    seed = _checks.seed_of(key)
     key = _checks.prng_key(key)
     limits = limits_for(cls, radius_range, axis_prior, normal_angle)
     prepared = []
@@ -852,7 +852,7 @@ def _search(cls, est, clouds, key, seed, confidence, max_hypotheses, batch_size,
         "n": np.asarray([clouds[i].points.shape[0] for i in order], np.int32),
         "n_sample": np.asarray([m for _, _, m in rows], np.int32),
         "keys": (_cloud_keys(key, slots) if seed is None
-                 else _seed_cloud_keys(int(seed), jax.config.jax_default_prng_impl, slots)),
+                 else _seed_cloud_keys(seed, jax.config.jax_default_prng_impl, slots)),
         "threshold": np.asarray([clouds[i].threshold / clouds[i].scale for i in order], dtype),
         "limits": np.stack([clouds[i].unit_limits() for i in order]).astype(dtype),
     }
@@ -890,12 +890,10 @@ def _search(cls, est, clouds, key, seed, confidence, max_hypotheses, batch_size,
         best_raw = np.where(improved, raw, best_raw)
         if refine and improved.any():
             polishing = subset_rows(improved, len(devices))
-            if polishing is not None or searching is not None:
+            if polishing is not None:  # (else every slot: the kernel ran on all of them)
                 row = np.full(slots, -1)
                 row[where[::-1]] = np.arange(len(where))[::-1]  # first row of each slot
-                starts = np.asarray(theta)[row[polishing if polishing is not None else
-                                               np.arange(slots)]]
-                theta, a = put(starts), on(polishing)
+                theta, a = put(np.asarray(theta)[row[polishing]]), on(polishing)
             theta, cost, found = _refine_many(cls, theta, a["points"], a["n"], a["threshold"],
                                               a["limits"], a["normals"] if gated else None,
                                               lo_rows(n_max))
