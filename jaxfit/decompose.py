@@ -135,6 +135,12 @@ class Candidate:
         """Whether the candidate may win its part (``overshoot <= MAX_OVERSHOOT``)."""
         return self.overshoot <= MAX_OVERSHOOT
 
+    @property
+    def rank(self) -> tuple[bool, float]:
+        """Sort key of the PSDA's choice: plausible candidates first, then the lowest
+        mean distance."""
+        return not self.plausible, self.mean_distance
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Part:
@@ -372,7 +378,7 @@ def _best_fitted(part: Part) -> Model:
     fitted = [c for k, c in part.candidates.items() if k != "mvbb"]
     if not fitted:
         return part.model
-    best = min(fitted, key=lambda c: (not c.plausible, c.mean_distance))
+    best = min(fitted, key=lambda c: c.rank)
     if best.plausible and best.mean_distance <= OWNER_SLACK * part.candidates["mvbb"].mean_distance:
         return best.model
     return min(fitted, key=lambda c: c.mean_distance).model
@@ -421,8 +427,7 @@ def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed
         say(f"fitted {cls.name} to {len(clouds)} parts ({time.perf_counter() - started:.2f} s)")
     parts = []
     for group, box, found in zip(groups, boxes, candidates, strict=True):
-        winner = min(found, key=lambda name: (not found[name].plausible,
-                                              found[name].mean_distance))
+        winner = min(found, key=lambda name: found[name].rank)
         model = found[winner].model
         parts.append(Part(group, box, model.name, winner, model, found[winner].mean_distance,
                           found))
