@@ -141,7 +141,7 @@ class Box(Model):
                 far[i] = hi if hi - near[i] > near[i] - lo else lo
         near, far = _polish_faces(proj, near, far, threshold)
         rotation = g.sign_canonical(normals[:2])
-        rotation = np.stack([rotation[0], rotation[1], np.cross(rotation[0], rotation[1])], 1)
+        rotation = np.stack([rotation[0], rotation[1], g.cross3(rotation[0], rotation[1])], 1)
         middle = normals.T @ (0.5 * (near + far))
         return cls(middle, rotation, np.abs(far - near))
 
@@ -189,11 +189,12 @@ def _polish_faces(proj, near, far, threshold, rounds: int = 2):
         # Thin boxes have no interior to spare: keep the whole face there.
         shrink = np.where(hi - lo > 4 * margin, margin, -threshold)
         inside = (proj >= lo + shrink) & (proj <= hi - shrink)  # (N, 3)
-        for side, i in np.ndindex(2, 3):
-            others = np.delete(inside, i, axis=1).all(axis=1)
-            band = others & (np.abs(proj[:, i] - faces[side, i]) < margin)
-            if band.sum() >= 3:
-                faces[side, i] = np.median(proj[band, i])
+        for i in range(3):
+            others = inside[:, (i + 1) % 3] & inside[:, (i + 2) % 3]
+            for side in range(2):
+                band = others & (np.abs(proj[:, i] - faces[side, i]) < margin)
+                if np.count_nonzero(band) >= 3:
+                    faces[side, i] = g.median(proj[band, i])
     return faces[0], faces[1]
 
 
@@ -212,7 +213,7 @@ def _opposite_face(proj, near, threshold):
     centres = 0.5 * (edges[:-1] + edges[1:])
     smooth[np.abs(centres - near) < 3 * threshold] = 0
     peak = int(np.argmax(smooth))
-    background = np.median(smooth[smooth > 0]) if np.any(smooth > 0) else 0.0
+    background = g.median(smooth[smooth > 0]) if np.any(smooth > 0) else 0.0
     if smooth[peak] < max(3.0, 3.0 * background):
         return np.nan
     close = np.abs(proj - centres[peak]) < threshold

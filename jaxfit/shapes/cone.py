@@ -111,7 +111,7 @@ class Cone(Model):
     def from_theta(cls, theta, points, inliers, threshold):
         apex, axis = np.asarray(theta[:3], np.float64), np.asarray(theta[3:6], np.float64)
         t, _ = g.axial_radial(points[inliers], apex, axis)
-        if np.median(t) < 0:  # the inliers sit on the other nappe: turn the cone around
+        if g.median(t) < 0:  # the inliers sit on the other nappe: turn the cone around
             axis, t = -axis, -t
         _, hi = g.main_interval(t, g.GAP_THRESHOLDS * threshold)
         return cls(apex, axis, np.float64(theta[6]), np.float64(max(hi, 0.0)))

@@ -75,7 +75,7 @@ class Plane(Model):
         in_plane = g.frame(normal)[:, :2]  # (3, 2)
         u, v = (points @ in_plane[:, i] for i in range(2))
         u, v = u[inliers], v[inliers]
-        mu, mv = np.median(u), np.median(v)
+        mu, mv = g.median(u), g.median(v)
         spread = np.hypot(u - mu, v - mv)
         _, radius = g.main_interval(spread, g.GAP_THRESHOLDS * threshold)
         patch = spread <= radius
