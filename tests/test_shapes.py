@@ -265,3 +265,20 @@ def test_box_canonicalize_is_the_nearest_rotation_and_differentiable(rng):
     jac = jax.jacfwd(Box.canonicalize)(jnp.asarray(np.concatenate([rotation.ravel(), offsets]),
                                                    jnp.float32))
     assert np.isfinite(np.asarray(jac)).all()
+
+
+def test_fast_host_helpers_equal_numpy():
+    # The models' host code uses these in place of np.median / np.cross for speed; the
+    # fitted models must not change by a bit.
+    from jaxfit.shapes import _geometry as g
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 7, 500, 501):
+        v = rng.normal(size=n)
+        assert g.median(v) == np.median(v)
+    assert np.isnan(g.median(np.array([])))
+    a, b = rng.normal(size=(2, 3))
+    assert np.array_equal(g.cross3(a, b), np.cross(a, b))
+    rot = g.frame(a / np.linalg.norm(a))
+    np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rot) > 0
