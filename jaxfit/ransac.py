@@ -44,10 +44,6 @@ MIN_BUCKET = 1024
 SUPPORT = 256
 #: Upper bound on (clouds x points x hypotheses) in one step of a batched scan (a few MB).
 GROUP_ELEMENTS = 1 << 20
-#: LO-RANSAC refines this many of a batch's best hypotheses and keeps the best result:
-#: on noisy cones the single best raw hypothesis often sits in the wrong basin of the
-#: MSAC cost (see the README's estimator comparison).
-LO_STARTS = 4
 #: An LO round counts as progress only if it lowers the MSAC cost by this fraction: on
 #: clean data every round shaved off float noise, and the rounds ran to max_rounds.
 LO_GAIN = 1e-4
@@ -471,7 +467,7 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
     def one(args):
         p, nrm, n, m, k, t, lim = args
         return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
-                           estimator, LO_STARTS, m, lim, gated, n_chunks)
+                           estimator, cls.lo_starts, m, lim, gated, n_chunks)
 
     return jax.lax.map(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,
                              limits),
@@ -511,7 +507,7 @@ def _group(clouds: int, elements: int) -> int:
 
 @partial(jax.jit, static_argnames=("cls", "rows"))
 def _refine_many(cls, thetas, points, n_valid, threshold, limits, normals=None, rows=None):
-    """refine_theta for each cloud's LO_STARTS hypotheses thetas (C, S, P), gated on
+    """refine_theta for each cloud's ``cls.lo_starts`` hypotheses thetas (C, S, P), gated on
     normals (C, B, 3) if given; returns the best refined theta (C, P), its cost (C,) and
     inlier count (C,) per cloud."""
 

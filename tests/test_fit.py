@@ -245,7 +245,10 @@ def test_few_hard_clouds_run_alone_and_give_the_same_results(monkeypatch):
     assert [r.num_hypotheses for r in subset] == [r.num_hypotheses for r in every]
     assert max(r.num_hypotheses for r in subset) > 256
     for a, b in zip(subset, every, strict=True):
-        np.testing.assert_array_equal(a.model.center, b.model.center)
+        # Same hypotheses; XLA may round a refinement batch of 2 rows differently from
+        # one of 32, and LM then stops at another point within its tolerance (4e-6
+        # apart here, on one hard cloud of unit size).
+        np.testing.assert_allclose(a.model.center, b.model.center, rtol=0, atol=1e-5)
         np.testing.assert_array_equal(a.inliers, b.inliers)
 
 

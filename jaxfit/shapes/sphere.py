@@ -31,6 +31,11 @@ class Sphere(Model):
     oriented_sample_size: ClassVar[int] = 2
     radius_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 4
+    # The MSAC cost of a sphere has one basin near the truth: refining only the best
+    # hypothesis was as accurate as four starts (thesis suite, 20 clouds per level and
+    # scenario: median, 90th-percentile and worst centre and radius errors within 0.5 %
+    # of each other) at a quarter of the refinement.
+    lo_starts: ClassVar[int] = 1
     field_specs: ClassVar = {"center": ((3,), _POINT), "radius": ((), _LENGTH)}
 
     @staticmethod
