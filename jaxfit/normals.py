@@ -22,6 +22,7 @@ outside and for scans seen from one viewpoint.
 from __future__ import annotations
 
 import numbers
+import os
 
 import numpy as np
 
@@ -35,12 +36,41 @@ BLOCK = 65536
 _EPS = 1e-9
 
 
-def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
+#: Below this many queries a cloud's KD-tree query runs on one thread: scipy's own
+#: threads cost more than they save on small clouds, which are instead queried side by
+#: side, one per core (1000 clouds of 500 points: 1.1 -> 0.6 ms per cloud on 2 cores).
+SMALL_QUERY = 4096
+
+
+def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None,
+        workers: int = -1) -> np.ndarray:
     """Indices (M, k) of the k nearest points of points (N, 3) to each query (M, 3)
-    (default: the points themselves, each first among its own neighbours up to ties)."""
+    (default: the points themselves, each first among its own neighbours up to ties),
+    on ``workers`` threads (-1: all cores)."""
     from scipy.spatial import cKDTree
 
-    return cKDTree(points).query(points if queries is None else queries, k=k, workers=-1)[1]
+    queries = points if queries is None else queries
+    return cKDTree(points).query(queries, k=k, workers=workers)[1]
+
+
+def knn_many(clouds, queries, ks) -> list[np.ndarray]:
+    """``knn(clouds[i], ks[i], queries[i])`` for every cloud: large ones one after the
+    other on all cores; small ones (< SMALL_QUERY queries), if there are several, one
+    per core at a time (cKDTree releases the GIL while it queries)."""
+    out = [None] * len(clouds)
+    small = [i for i, q in enumerate(queries) if len(q) < SMALL_QUERY]
+    if len(small) < 2:  # nothing to run side by side
+        small = []
+    for i in sorted(set(range(len(clouds))) - set(small)):
+        out[i] = knn(clouds[i], ks[i], queries[i])
+    if small:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+            found = pool.map(lambda i: knn(clouds[i], ks[i], queries[i], workers=1), small)
+            for i, hood in zip(small, found, strict=True):
+                out[i] = hood
+    return out
 
 
 def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
@@ -218,7 +248,7 @@ def normals_at_many(clouds, indices, ks) -> list[np.ndarray]:
     cost, some 50 NumPy calls, is paid once per block, not once per cloud). 1000 clouds of
     500 points: 2.2-2.6 -> 1.8 ms per cloud, most of it now the KD-tree queries."""
     ks = [_check_k(k, len(c)) for c, k in zip(clouds, ks, strict=True)]
-    neighbours = [knn(c, k, c[i]) for c, i, k in zip(clouds, indices, ks, strict=True)]
+    neighbours = knn_many(clouds, [c[i] for c, i in zip(clouds, indices, strict=True)], ks)
     out = [None] * len(clouds)
     for k in set(ks):
         which = [i for i, ki in enumerate(ks) if ki == k]

@@ -137,7 +137,8 @@ def test_closed_form_smallest_eigenvectors_match_eigh():
 
 def test_batched_normals_equal_one_cloud_at_a_time(monkeypatch):
     """fit_batch estimates all clouds' normals in one call: same normals as one call per
-    cloud, whatever the neighbourhood sizes and however the blocks split the clouds, and
+    cloud, whatever the neighbourhood sizes, however the blocks split the clouds and
+    whichever clouds are queried side by side on threads, and
     right far from the origin (the covariances' sums are taken about each neighbourhood)."""
     import jaxfit.normals as nm
 
@@ -149,6 +150,7 @@ def test_batched_normals_equal_one_cloud_at_a_time(monkeypatch):
     ks = [min(16, len(c)) for c in clouds]
     one = [nm.normals_at(c, i, k) for c, i, k in zip(clouds, indices, ks, strict=True)]
     monkeypatch.setattr(nm, "BLOCK", 100)  # blocks end inside clouds
+    monkeypatch.setattr(nm, "SMALL_QUERY", 100)  # some clouds queried side by side, some not
     many = nm.normals_at_many(clouds, indices, ks)
     for a, b, c, i, m in zip(one, many, clouds, indices, spheres, strict=True):
         assert b.shape == (len(i), 3)
