@@ -27,10 +27,26 @@ and JAX catches every cache read error (``jax_raise_persistent_cache_errors`` is
 default): it warns and compiles instead. There are no lock files to go stale, because the
 cache is unbounded (``jax_compilation_cache_max_size`` = -1; bounding it makes JAX lock
 with the optional ``filelock`` package). Delete the folder to clear it.
+
+JAX's cache is keyed by the lowered program, so every process still traces and lowers each
+kernel before it can look the program up: 0.5-0.9 s per primitive, most of a warm
+whole-process fit. jaxfit's kernels (``Stored``) therefore also keep the lowered program
+itself, as a ``jax.export`` module (JAX's public, versioned serialization of StableHLO), in
+the ``exported`` sub-folder, keyed by what the program depends on (jaxfit's source, the JAX
+versions, the devices, JAX's numeric settings, ``XLA_FLAGS``, the call's static values and
+argument shapes). A later process reads it and skips tracing and lowering; the program is
+then compiled, or found in JAX's cache, as before. Each file is written to a temporary name
+and renamed into place, so a reader sees a whole file or none; a file that fails to load is
+exported again and replaced. (Serialized *executables* were tried first and dropped: on the
+CPU one that calls LAPACK crashed a fresh process, and one JAX had itself read from its
+cache was saved without its machine code.)
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import inspect
 import os
 import sys
 import tempfile
@@ -38,6 +54,7 @@ import warnings
 from pathlib import Path
 
 import jax
+import numpy as np
 
 #: Environment variable that turns the cache off when set to one of ``OFF_VALUES``.
 ENV_SWITCH = "JAXFIT_CACHE"
@@ -125,3 +142,133 @@ def compilation_cache_dir() -> str | None:
     if not jax.config.jax_enable_compilation_cache:
         return None
     return jax.config.jax_compilation_cache_dir
+
+
+#: Sub-folder of jaxfit's cache folder that holds the ``Stored`` kernels' programs.
+EXPORTED = "exported"
+
+
+@functools.cache
+def _source_digest() -> str:
+    """Hash of jaxfit's own source files: a program traced from other code is stale."""
+    digest = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _environment() -> tuple:
+    """What a traced program depends on besides its own arguments. (Read per new
+    signature, not cached: a user may change JAX's settings between calls.)"""
+    import jaxlib
+
+    cfg = jax.config
+    return (_source_digest(), jax.__version__, jaxlib.__version__,
+            tuple((d.platform, d.device_kind, d.id) for d in jax.local_devices()),
+            cfg.jax_enable_x64, cfg.jax_default_prng_impl, cfg.jax_default_matmul_precision,
+            cfg.jax_numpy_dtype_promotion, cfg.jax_numpy_rank_promotion,
+            os.environ.get("XLA_FLAGS", ""))
+
+
+def _leaf_signature(leaf):
+    """Shape, dtype and weak type of one dynamic argument, or None where the call is left
+    to the plain jitted function: a tracer (the kernel is being traced into another) or
+    an array split over several devices (its sharding would be part of the program)."""
+    if isinstance(leaf, jax.core.Tracer):
+        return None
+    # (dtypes themselves, not their str: that alone cost 5 us a leaf, on every call)
+    if isinstance(leaf, jax.Array):
+        if len(leaf.devices()) > 1:
+            return None
+        return (leaf.shape, leaf.dtype, getattr(leaf, "weak_type", False))
+    if isinstance(leaf, np.ndarray | np.generic):
+        return (leaf.shape, leaf.dtype)
+    if isinstance(leaf, bool | int | float | complex):
+        return (type(leaf).__name__,)  # weakly typed scalars: the value is not compiled in
+    return None
+
+
+def _static_value(value):
+    """A static argument as it enters the key: classes by name, everything else by repr."""
+    if isinstance(value, type):
+        return f"{value.__module__}.{value.__qualname__}"
+    return repr(value)
+
+
+class Stored:
+    """A jitted function whose traced programs are kept in ``EXPORTED`` between processes
+    (see the module docstring), called like the function itself. Without jaxfit's cache
+    folder, for arguments it cannot key, or if JAX cannot export the function, it calls
+    the jitted function.
+
+    ``jitted``: ``jax.jit`` of ``fn`` with ``static_argnames`` and the compiler
+    ``options``, which the reloaded program is compiled with too.
+    """
+
+    def __init__(self, jitted, fn, static_argnames=(), options=None):
+        self.jitted, self.name = jitted, f"{fn.__module__}.{fn.__qualname__}"
+        params = list(inspect.signature(fn).parameters)
+        self.static_names = frozenset(static_argnames)
+        self.static_positions = frozenset(params.index(n) for n in static_argnames)
+        self.options = dict(options or {})
+        self.kernels: dict = {}  # signature -> callable of the dynamic arguments
+        functools.update_wrapper(self, fn)
+
+    def __call__(self, *args, **kwargs):
+        if _enabled_dir is None:
+            return self.jitted(*args, **kwargs)
+        dyn_args = tuple(a for i, a in enumerate(args) if i not in self.static_positions)
+        dyn_kwargs = {k: v for k, v in kwargs.items() if k not in self.static_names}
+        leaves, tree = jax.tree_util.tree_flatten((dyn_args, dyn_kwargs))
+        shapes = tuple(_leaf_signature(leaf) for leaf in leaves)
+        if None in shapes:
+            return self.jitted(*args, **kwargs)
+        static = tuple(_static_value(a) for i, a in enumerate(args)
+                       if i in self.static_positions)
+        static += tuple((k, _static_value(v)) for k, v in sorted(kwargs.items())
+                        if k in self.static_names)
+        signature = (static, str(tree), shapes)
+        kernel = self.kernels.get(signature)
+        if kernel is None:
+            kernel = self.kernels[signature] = self._kernel(signature, args, kwargs)
+        if kernel is self.jitted:
+            return self.jitted(*args, **kwargs)
+        return kernel(*dyn_args, **dyn_kwargs)
+
+    def _kernel(self, signature, args, kwargs):
+        """The jitted call of the exported program for one signature: read from the
+        folder, or exported (traced and lowered) now and written there; ``self.jitted``
+        where JAX cannot export it."""
+        from jax import export
+
+        key = repr((self.name, sorted(self.options.items()), _environment(), signature))
+        path = (Path(_enabled_dir) / EXPORTED
+                / f"{hashlib.sha256(key.encode()).hexdigest()}.jaxexport")
+        try:
+            exported = export.deserialize(bytearray(path.read_bytes()))
+        except Exception:  # missing, partial or unreadable: export it (again)
+            try:
+                exported = export.export(self.jitted)(*args, **kwargs)
+                blob = exported.serialize()
+            except Exception:  # (a real error in the call is raised by the jitted one)
+                return self.jitted
+            _write(path, blob)
+        options = {"compiler_options": self.options} if self.options else {}
+        return jax.jit(exported.call, **options)
+
+
+def _write(path: Path, blob) -> None:
+    """Write blob to path all at once (a temporary file renamed into place), or not at all
+    (an unwritable folder or a full disk only costs the next process a trace)."""
+    temporary = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, temporary = tempfile.mkstemp(prefix=".part-", dir=path.parent)
+        with os.fdopen(fd, "wb") as f:
+            f.write(blob)
+        os.replace(temporary, path)
+    except OSError:
+        if temporary is not None and os.path.exists(temporary):
+            os.unlink(temporary)

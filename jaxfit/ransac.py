@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checks
+from . import _cache, _checks
 from .shapes import Model
 from .shapes._geometry import column_bounds, row_norms
 
@@ -122,12 +122,19 @@ CPU_OPTIONS = {
 }
 
 
-def _jit_tuned(fn, **jit_kwargs):
-    """jax.jit with CPU_OPTIONS on the CPU, and without them where they are refused."""
-    plain = jax.jit(fn, **jit_kwargs)
+def _kernel(fn, static_argnames=(), options=None):
+    """jax.jit of fn, its executables kept between processes (``_cache.Stored``)."""
+    jitted = jax.jit(fn, static_argnames=static_argnames,
+                     **({"compiler_options": options} if options else {}))
+    return _cache.Stored(jitted, fn, static_argnames, options)
+
+
+def _jit_tuned(fn, static_argnames=()):
+    """``_kernel`` with CPU_OPTIONS on the CPU, and without them where they are refused."""
+    plain = _kernel(fn, static_argnames)
     if jax.default_backend() != "cpu":
         return plain
-    tuned = jax.jit(fn, compiler_options=CPU_OPTIONS, **jit_kwargs)
+    tuned = _kernel(fn, static_argnames, CPU_OPTIONS)
     state = {"tuned": True}
 
     @functools.wraps(fn)
@@ -478,7 +485,12 @@ _batch_best_many = _jit_tuned(_batch_best_many,
                               static_argnames=("cls", "batch_size", "estimator", "gated"))
 
 
-_fold_in_each = jax.jit(jax.vmap(jax.random.fold_in, in_axes=(None, 0)))
+def _fold_in_each(key, indices):
+    """fold_in(key, i) for each i of indices (S,)."""
+    return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, indices)
+
+
+_fold_in_each = _kernel(_fold_in_each)
 
 
 def _cloud_keys(key, slots: int):
@@ -505,7 +517,6 @@ def _group(clouds: int, elements: int) -> int:
     return group
 
 
-@partial(jax.jit, static_argnames=("cls", "rows"))
 def _refine_many(cls, thetas, points, n_valid, threshold, limits, normals=None, rows=None):
     """refine_theta for each cloud's ``cls.lo_starts`` hypotheses thetas (C, S, P), gated on
     normals (C, B, 3) if given; returns the best refined theta (C, P), its cost (C,) and
@@ -527,6 +538,9 @@ def _refine_many(cls, thetas, points, n_valid, threshold, limits, normals=None, 
     pick = lambda a: jnp.take_along_axis(a, best.reshape(best.shape + (1,) * (a.ndim - 2)),  # noqa: E731
                                           axis=1)[:, 0]
     return pick(theta), pick(cost), pick(count)
+
+
+_refine_many = _kernel(_refine_many, ("cls", "rows"))
 
 
 @dataclasses.dataclass

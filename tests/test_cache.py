@@ -18,9 +18,14 @@ from jaxfit import _cache
 SCRIPT = r"""
 import collections, json, time, warnings
 warnings.simplefilter("always")
-import jax.monitoring
+import jax.export, jax.monitoring
 events = collections.Counter()
 jax.monitoring.register_event_listener(lambda name, **_: events.update([name]))
+export = jax.export.export
+def counted(*args, **kwargs):  # jaxfit's kernels are traced only to be exported
+    events.update(["exports"])
+    return export(*args, **kwargs)
+jax.export.export = counted
 import numpy as np
 import jaxfit
 from jaxfit.synthetic import demo_cloud
@@ -33,6 +38,7 @@ print(json.dumps({
     "misses": events["/jax/compilation_cache/cache_misses"],
     "first_fit_s": time.perf_counter() - start,
     "inliers": result.num_inliers,
+    "exports": events["exports"],
 }))
 """
 
@@ -51,6 +57,11 @@ def entries(folder: Path) -> list[Path]:
     return sorted(folder.glob("*-cache")) if folder.exists() else []
 
 
+def exported(folder: Path) -> dict[Path, float]:
+    """jaxfit's exported kernels in the folder, with their modification times."""
+    return {p: p.stat().st_mtime_ns for p in sorted((folder / _cache.EXPORTED).glob("*"))}
+
+
 def test_second_process_hits_the_cache(tmp_path):
     folder = tmp_path / "cache"
     first, _ = run({_cache.ENV_DIR: str(folder)})
@@ -58,16 +69,19 @@ def test_second_process_hits_the_cache(tmp_path):
     assert first["dir"] == str(folder)
     assert first["misses"] > 0 and first["hits"] == 0
     assert len(written) == first["misses"]  # every compiled executable was stored
+    programs = exported(folder)
+    assert first["exports"] == len(programs) == 2  # the kernel and the cloud keys
     second, _ = run({_cache.ENV_DIR: str(folder)})
     assert second["hits"] == first["misses"] and second["misses"] == 0
     assert entries(folder) == written  # nothing rewritten or added
+    assert second["exports"] == 0 and exported(folder) == programs  # read, not traced
     assert second["inliers"] == first["inliers"]  # same result from the cached kernels
 
 
 def test_switch_off_writes_nothing(tmp_path):
     folder = tmp_path / "cache"
     out, _ = run({_cache.ENV_DIR: str(folder), _cache.ENV_SWITCH: "0"})
-    assert out["dir"] is None and out["hits"] == out["misses"] == 0
+    assert out["dir"] is None and out["hits"] == out["misses"] == out["exports"] == 0
     assert not folder.exists()
 
 
@@ -103,3 +117,47 @@ def test_unusable_reports_a_reason(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
     assert _cache.unusable(blocker / "sub") is not None
+
+
+def _stored_square(tmp_path, monkeypatch, traced):
+    """A fresh ``Stored`` kernel (as a new process would make) writing to tmp_path."""
+    import jax
+
+    monkeypatch.setattr(_cache, "_enabled_dir", str(tmp_path))
+
+    def scaled_square(x, factor):
+        traced.append(x.shape)
+        return factor * x * x
+
+    return _cache.Stored(jax.jit(scaled_square, static_argnames="factor"), scaled_square,
+                         ("factor",))
+
+
+def test_a_stored_kernel_is_read_back_without_tracing(tmp_path, monkeypatch):
+    import numpy as np
+
+    traced = []
+    x = np.arange(4, dtype=np.float32)
+    first = _stored_square(tmp_path, monkeypatch, traced)
+    np.testing.assert_array_equal(first(x, factor=3), 3 * x * x)
+    assert len(traced) == 1 and len(exported(tmp_path)) == 1
+    again = _stored_square(tmp_path, monkeypatch, traced)  # as in the next process
+    np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
+    assert len(traced) == 1  # the program came from the file
+    # Another static value or shape is another program.
+    np.testing.assert_array_equal(again(x, factor=2), 2 * x * x)
+    np.testing.assert_array_equal(again(x[:3], factor=3), 3 * x[:3] ** 2)
+    assert len(traced) == 3 and len(exported(tmp_path)) == 3
+
+
+def test_a_broken_stored_kernel_is_exported_again(tmp_path, monkeypatch):
+    import numpy as np
+
+    traced = []
+    x = np.arange(4, dtype=np.float32)
+    _stored_square(tmp_path, monkeypatch, traced)(x, factor=3)
+    (path,) = exported(tmp_path)
+    path.write_bytes(path.read_bytes()[:100])  # cut short, as by a crash
+    again = _stored_square(tmp_path, monkeypatch, traced)
+    np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
+    assert len(traced) == 2 and path.stat().st_size > 100  # traced and replaced
