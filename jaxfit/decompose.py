@@ -109,6 +109,8 @@ MAX_OVERSHOOT = 0.05
 #: judged on the others, its outside (``_outside``).
 HOLLOW = 0.25
 HOLLOW_DEPTH = 2.0
+#: Points per block when measuring their depth inside a part's hull (see ``_outside``).
+HULL_BLOCK = 1024
 #: Ownership in reassignment skips implausible candidates unless the best plausible one
 #: is more than this many times as far from its part's points as the part's MVBB.
 OWNER_SLACK = 2.0
@@ -443,7 +445,14 @@ def _outside(cloud, threshold):
         equations = ConvexHull(cloud).equations
     except (QhullError, ValueError):  # flat or tiny parts have no inside
         return cloud
-    depth = -np.max(cloud @ equations[:, :3].T + equations[:, 3], axis=1)
+    # Depth below the nearest hull face, a block of points at a time: all at once, the
+    # (points, faces) matrix of a 20k-point mug (7,778 faces) took 1.2 GB and 4.9 s on
+    # its first use (0.55 s blocked, the same values).
+    normals, offsets = equations[:, :3].T.copy(), equations[:, 3]
+    depth = np.empty(len(cloud))
+    for start in range(0, len(cloud), HULL_BLOCK):
+        rows = slice(start, start + HULL_BLOCK)
+        depth[rows] = -np.max(cloud[rows] @ normals + offsets, axis=1)
     outside = depth <= HOLLOW_DEPTH * threshold
     return cloud[outside] if 1.0 - outside.mean() >= HOLLOW else cloud
 
