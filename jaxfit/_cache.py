@@ -144,7 +144,8 @@ def compilation_cache_dir() -> str | None:
     return jax.config.jax_compilation_cache_dir
 
 
-#: Sub-folder of jaxfit's cache folder that holds the ``Stored`` kernels' programs.
+#: Sub-folder of jaxfit's cache folder that holds the ``Stored`` kernels' programs, in one
+#: folder per jaxfit source (a program traced from other code is never read).
 EXPORTED = "exported"
 
 
@@ -244,7 +245,8 @@ class Stored:
         from jax import export
 
         key = repr((self.name, sorted(self.options.items()), _environment(), signature))
-        path = (Path(_enabled_dir) / EXPORTED
+        # One sub-folder per jaxfit source: those of older versions can be deleted whole.
+        path = (Path(_enabled_dir) / EXPORTED / _source_digest()[:16]
                 / f"{hashlib.sha256(key.encode()).hexdigest()}.jaxexport")
         try:
             exported = export.deserialize(bytearray(path.read_bytes()))

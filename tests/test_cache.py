@@ -59,7 +59,8 @@ def entries(folder: Path) -> list[Path]:
 
 def exported(folder: Path) -> dict[Path, float]:
     """jaxfit's exported kernels in the folder, with their modification times."""
-    return {p: p.stat().st_mtime_ns for p in sorted((folder / _cache.EXPORTED).glob("*"))}
+    return {p: p.stat().st_mtime_ns for p in sorted((folder / _cache.EXPORTED).rglob("*"))
+            if p.is_file()}
 
 
 def test_second_process_hits_the_cache(tmp_path):
