@@ -490,20 +490,27 @@ def _fold_in_each(key, indices):
     return jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, indices)
 
 
-_fold_in_each = _kernel(_fold_in_each)
+def _seed_keys(seed, slots: int):
+    """``_fold_in_each`` of jax.random.key(seed) (a uint32 seed) over range(slots)."""
+    return _fold_in_each(jax.random.key(seed), jnp.arange(slots, dtype=jnp.int32))
+
+
+_keys_of_key = _kernel(_fold_in_each)
+_keys_of_seed = _kernel(_seed_keys, ("slots",))
 
 
 def _cloud_keys(key, slots: int):
     """fold_in(key, i) for the clouds i < slots: cloud i's key (see ``fit_batch``)."""
-    return _fold_in_each(key, np.arange(slots, dtype=np.int32))
+    return _keys_of_key(key, np.arange(slots, dtype=np.int32))
 
 
 @functools.lru_cache(maxsize=256)
 def _seed_cloud_keys(seed: int, impl: str, slots: int):
-    """``_cloud_keys`` of an int seed, kept: the fold_ins are a JAX dispatch of ~0.2 ms,
-    5 % of a 10k-point plane fit. Keys are immutable; ``impl`` keys the cache on JAX's
-    PRNG setting."""
-    return _cloud_keys(_checks.prng_key(seed), slots)
+    """``_cloud_keys`` of ``jax.random.key(seed)``, in one dispatch (making the key and
+    folding it had been two: a fit with a new int seed spent 170 us on its keys, 20 % of
+    a 500-point sphere fit; now ~25 us) and kept for the seed. Keys are immutable;
+    ``impl`` keys the cache on JAX's PRNG setting."""
+    return _keys_of_seed(np.uint32(seed), slots)
 
 
 def _group(clouds: int, elements: int) -> int:
@@ -649,7 +656,7 @@ def _prepare(points, cls, normals, threshold, est, key, index, limits) -> _Cloud
         if len(cloud) > NORMAL_POOL:
             # Derived here only: two fold_ins per cloud cost ~0.6 ms, more than a whole
             # kernel call for a small cloud in fit_batch.
-            pool_key = jax.random.key_data(_normals_key(key, index))
+            pool_key = jax.random.key_data(_normals_key(_checks.prng_key(key), index))
             rng = np.random.default_rng(np.asarray(pool_key))
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
         wanted = np.arange(len(cloud)) if pool is None else pool
@@ -791,7 +798,8 @@ def fit_batch(
     if len(thresholds) != len(clouds):
         raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
     seed = _checks.seed_of(key)
-    key = _checks.prng_key(key)
+    if seed is None:  # (an int seed becomes a key only where one is needed: ~50 us)
+        key = _checks.prng_key(key)
     limits = limits_for(cls, radius_range, axis_prior, normal_angle)
     prepared = []
     for i, points in enumerate(clouds):

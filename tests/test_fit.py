@@ -84,6 +84,14 @@ def test_same_key_same_result_and_keys_matter():
     raw = jaxfit.fit(points, "sphere", key=jax.random.PRNGKey(7), refine=False)
     other = jaxfit.fit(points, "sphere", key=8, refine=False)
     assert not np.array_equal(raw.model.center, other.model.center)
+    # An int seed's cloud keys are made in one jitted call: the same as from its key,
+    # up to the largest seed (seeds are taken modulo 2**32).
+    from jaxfit import ransac
+
+    for seed in (0, 2**31, 2**32 - 1):
+        fused = ransac._seed_cloud_keys(seed, jax.config.jax_default_prng_impl, 4)
+        made = ransac._cloud_keys(jax.random.key(seed), 4)
+        assert np.array_equal(jax.random.key_data(fused), jax.random.key_data(made))
 
 
 def test_stopping_rule_values():
