@@ -123,7 +123,7 @@ CPU_OPTIONS = {
 
 
 def _kernel(fn, static_argnames=(), options=None):
-    """jax.jit of fn, its executables kept between processes (``_cache.Stored``)."""
+    """jax.jit of fn, its traced programs kept between processes (``_cache.Stored``)."""
     jitted = jax.jit(fn, static_argnames=static_argnames,
                      **({"compiler_options": options} if options else {}))
     return _cache.Stored(jitted, fn, static_argnames, options)
