@@ -118,3 +118,19 @@ def test_graspit_hollow_mug_is_a_body_cylinder_and_a_handle(data_dir, key):
     for part in result.parts:
         vertices = part.model.to_mesh().vertices
         assert np.all(vertices > lo - 0.05 * (hi - lo)) and np.all(vertices < hi + 0.05 * (hi - lo))
+
+
+def test_hull_depth_matches_numpy_for_any_padding():
+    """The jitted hull depth (float32, padded points and faces) equals the float64 NumPy
+    depth below the nearest face, far from the origin too."""
+    from scipy.spatial import ConvexHull
+
+    from jaxfit.decompose import hull_depth
+
+    rng = np.random.default_rng(2)
+    for count, shift in ((9, 0.0), (300, 1e3), (1500, -50.0)):
+        cloud = rng.normal(size=(count, 3)) * [3.0, 1.0, 2.0] + shift
+        faces = ConvexHull(cloud).equations
+        exact = -np.max(cloud @ faces[:, :3].T + faces[:, 3], axis=1)
+        np.testing.assert_allclose(hull_depth(cloud, faces), exact, rtol=0, atol=2e-5 * 3)
+        assert np.min(exact) > -1e-9  # (every point is inside its own hull)
