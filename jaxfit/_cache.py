@@ -261,6 +261,14 @@ class Stored:
         return jax.jit(exported.call, **options)
 
 
+def stored_jit(fn, static_argnames=(), options=None) -> Stored:
+    """``jax.jit`` of fn (with compiler ``options``), its traced programs kept between
+    processes (``Stored``)."""
+    jitted = jax.jit(fn, static_argnames=static_argnames,
+                     **({"compiler_options": options} if options else {}))
+    return Stored(jitted, fn, static_argnames, options)
+
+
 def _write(path: Path, blob) -> None:
     """Write blob to path all at once (a temporary file renamed into place), or not at all
     (an unwritable folder or a full disk only costs the next process a trace)."""

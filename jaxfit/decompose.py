@@ -92,8 +92,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
+from ._cache import stored_jit
 from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
-from .ransac import _kernel, fit_batch
+from .ransac import fit_batch
 from .shapes import Box, Cone, Cylinder, Model
 
 SHAPES = ("sphere", "cylinder", "cone", "box")
@@ -484,7 +485,7 @@ def _hull_depth_blocks(points, faces):
     return jax.lax.map(block, points.reshape(-1, HULL_BLOCK, 3))
 
 
-_hull_depth = _kernel(_hull_depth_blocks)
+_hull_depth = stored_jit(_hull_depth_blocks)
 
 
 def _overshoot(model: Model, bounds: Box) -> float:

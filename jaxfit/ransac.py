@@ -23,7 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _cache, _checks
+from . import _checks
+from ._cache import stored_jit
 from .shapes import Model
 from .shapes._geometry import column_bounds, row_norms
 
@@ -122,19 +123,12 @@ CPU_OPTIONS = {
 }
 
 
-def _kernel(fn, static_argnames=(), options=None):
-    """jax.jit of fn, its traced programs kept between processes (``_cache.Stored``)."""
-    jitted = jax.jit(fn, static_argnames=static_argnames,
-                     **({"compiler_options": options} if options else {}))
-    return _cache.Stored(jitted, fn, static_argnames, options)
-
-
 def _jit_tuned(fn, static_argnames=()):
-    """``_kernel`` with CPU_OPTIONS on the CPU, and without them where they are refused."""
-    plain = _kernel(fn, static_argnames)
+    """``stored_jit`` with CPU_OPTIONS on the CPU, and without them where they are refused."""
+    plain = stored_jit(fn, static_argnames)
     if jax.default_backend() != "cpu":
         return plain
-    tuned = _kernel(fn, static_argnames, CPU_OPTIONS)
+    tuned = stored_jit(fn, static_argnames, CPU_OPTIONS)
     state = {"tuned": True}
 
     @functools.wraps(fn)
@@ -495,8 +489,8 @@ def _seed_keys(seed, slots: int):
     return _fold_in_each(jax.random.key(seed), jnp.arange(slots, dtype=jnp.int32))
 
 
-_keys_of_key = _kernel(_fold_in_each)
-_keys_of_seed = _kernel(_seed_keys, ("slots",))
+_keys_of_key = stored_jit(_fold_in_each)
+_keys_of_seed = stored_jit(_seed_keys, ("slots",))
 
 
 def _cloud_keys(key, slots: int):
@@ -547,7 +541,7 @@ def _refine_many(cls, thetas, points, n_valid, threshold, limits, normals=None, 
     return pick(theta), pick(cost), pick(count)
 
 
-_refine_many = _kernel(_refine_many, ("cls", "rows"))
+_refine_many = stored_jit(_refine_many, ("cls", "rows"))
 
 
 @dataclasses.dataclass
