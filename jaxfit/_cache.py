@@ -160,16 +160,21 @@ def _source_digest() -> str:
     return digest.hexdigest()
 
 
+def _settings() -> tuple:
+    """JAX's settings that change how a function traces; part of every call's signature,
+    since a user may change them between calls."""
+    cfg = jax.config
+    return (cfg.jax_enable_x64, cfg.jax_default_prng_impl, cfg.jax_default_matmul_precision,
+            cfg.jax_numpy_dtype_promotion, cfg.jax_numpy_rank_promotion)
+
+
 def _environment() -> tuple:
-    """What a traced program depends on besides its own arguments. (Read per new
-    signature, not cached: a user may change JAX's settings between calls.)"""
+    """What a traced program depends on besides its call's signature (read per new
+    signature)."""
     import jaxlib
 
-    cfg = jax.config
     return (_source_digest(), jax.__version__, jaxlib.__version__,
             tuple((d.platform, d.device_kind, d.id) for d in jax.local_devices()),
-            cfg.jax_enable_x64, cfg.jax_default_prng_impl, cfg.jax_default_matmul_precision,
-            cfg.jax_numpy_dtype_promotion, cfg.jax_numpy_rank_promotion,
             os.environ.get("XLA_FLAGS", ""))
 
 
@@ -230,7 +235,7 @@ class Stored:
                        if i in self.static_positions)
         static += tuple((k, _static_value(v)) for k, v in sorted(kwargs.items())
                         if k in self.static_names)
-        signature = (static, str(tree), shapes)
+        signature = (static, str(tree), shapes, _settings())
         kernel = self.kernels.get(signature)
         if kernel is None:
             kernel = self.kernels[signature] = self._kernel(signature, args, kwargs)

@@ -149,6 +149,12 @@ def test_a_stored_kernel_is_read_back_without_tracing(tmp_path, monkeypatch):
     np.testing.assert_array_equal(again(x, factor=2), 2 * x * x)
     np.testing.assert_array_equal(again(x[:3], factor=3), 3 * x[:3] ** 2)
     assert len(traced) == 3 and len(exported(tmp_path)) == 3
+    # So is a call under other JAX settings that change tracing.
+    import jax
+
+    with jax.default_matmul_precision("highest"):
+        np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
+    assert len(traced) == 4
 
 
 def test_a_broken_stored_kernel_is_exported_again(tmp_path, monkeypatch):
