@@ -1,6 +1,6 @@
 """Scale-out: ``jaxfit.fit_batch`` of many small clouds against one ``jaxfit.fit`` per cloud.
 
-For each primitive, C clouds of 500 points (``jaxfit.synthetic.demo_cloud``: unit-size
+For each primitive, C clouds of 500 points (``jaxfit.evaluation.synthetic.demo_cloud``: unit-size
 primitive, surface noise U(-0.005, 0.005), 30 % outliers, seed = cloud index) are fitted,
 side by side in one run, on the same clouds with the same options (defaults: confidence
 0.99, LO refinement):
@@ -39,7 +39,7 @@ import jax
 import numpy as np
 
 import jaxfit
-from jaxfit.synthetic import demo_cloud
+from jaxfit.evaluation.synthetic import demo_cloud
 
 RESULTS = Path(__file__).resolve().parent / "results"
 POINTS = 500

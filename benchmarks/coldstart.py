@@ -11,7 +11,7 @@ same 10,000-point sphere cloud with 30 % outliers saved as ``.npy``:
   first and second process;
 - pyRANSAC-3D (``pip install ".[bench]"``; skipped if missing): its default 1000
   iterations, and stopped by its callback at the confidence-0.99 count (as jaxfit stops);
-- the NumPy reference loop (``jaxfit.reference.ransac``). It imports jaxfit and so JAX.
+- the NumPy reference loop (``jaxfit.evaluation.reference.ransac``). It imports jaxfit and so JAX.
 The methods take turns within each repeat, so the machine's load affects them alike.
 
 Then, per primitive, a fresh process fits a 2,000-point cloud twice and reports the first
@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfit.preview import pyplot
-from jaxfit.synthetic import demo_cloud
+from jaxfit.evaluation.synthetic import demo_cloud
+from jaxfit.io.preview import pyplot
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHAPES = ("plane", "sphere", "cylinder", "cone", "box")
@@ -76,7 +76,7 @@ print(center, radius, len(inliers))
 REFERENCE = """
 import sys
 import numpy as np
-from jaxfit import reference
+from jaxfit.evaluation import reference
 points = np.load(sys.argv[1])
 center = 0.5 * (points.min(axis=0) + points.max(axis=0))
 scale = np.linalg.norm(points - center, axis=1).max()
@@ -93,7 +93,7 @@ phases = collections.Counter()
 jax.monitoring.register_event_duration_secs_listener(
     lambda name, secs, **_: phases.update({{name.rsplit("/", 1)[-1]: secs}}))
 import jaxfit
-from jaxfit.synthetic import demo_cloud
+from jaxfit.evaluation.synthetic import demo_cloud
 points, _, _ = demo_cloud(sys.argv[1], count=2000, outlier_ratio=0.3, seed=0)
 calls = []
 for _ in range(2):

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfit.boxdecomp import decompose_boxes
-from jaxfit.decompose import decompose, load_source
+from jaxfit.decomposition import decompose, load_source
+from jaxfit.decomposition.boxdecomp import decompose_boxes
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 RESULTS = Path(__file__).resolve().parent / "results" / "decomposition"
@@ -47,7 +47,7 @@ def main():
         out = RESULTS / name
         out.mkdir(exist_ok=True)
         (out / "parts.json").write_text(json.dumps(result.to_dict(), indent=1))
-        from jaxfit.preview import render
+        from jaxfit.io.preview import render
 
         render(result, out / "preview.png")
         worst = max(p.mean_distance / np.linalg.norm(p.box.extents) for p in result.parts)

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import jaxfit
-from jaxfit.preview import pyplot
-from jaxfit.synthetic import scene
+from jaxfit.evaluation.synthetic import scene
+from jaxfit.io.preview import pyplot
 
 OUT = Path(__file__).resolve().parent / "results" / "detect"
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "fit4cad"

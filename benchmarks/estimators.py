@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxfit import evaluate
-from jaxfit.preview import pyplot
+from jaxfit.evaluation import evaluate
+from jaxfit.io.preview import pyplot
 
 SHAPES = ("cylinder", "cone", "sphere", "box")
 SCENARIOS = ("RN", "RNIM", "SN", "SNIM")

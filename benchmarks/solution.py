@@ -1,12 +1,12 @@
 """Time to solution: wall time of a whole fit with adaptive stopping, and the accuracy reached.
 
-For plane, sphere and cylinder clouds of 1e3, 1e4 and 1e5 points (``jaxfit.synthetic``:
+For plane, sphere and cylinder clouds of 1e3, 1e4 and 1e5 points (``jaxfit.evaluation.synthetic``:
 surface noise U(-0.005, 0.005) on a unit-size primitive, 10 / 30 / 60 % uniform outliers,
 several seeds), side by side in one run on the same clouds and the same inlier threshold:
 - jaxfit: ``jaxfit.fit`` with its defaults (confidence 0.99, LO refinement), warm (a
   warm-up call compiles first), median of repeats, for several ``batch_size`` values;
-- reference: ``jaxfit.reference.ransac``, the NumPy one-hypothesis-at-a-time loop with the
-  same adaptive stopping rule (confidence 0.99), no refinement;
+- reference: ``jaxfit.evaluation.reference.ransac``, the NumPy one-hypothesis-at-a-time
+  loop with the same adaptive stopping rule (confidence 0.99), no refinement;
 - pyRANSAC-3D (``pip install ".[bench]"``; skipped with a note if missing), two ways:
   "fixed", 1000 iterations (its default for plane and sphere; its cylinder's default of
   10000 takes ~40 s on 1e4 points), and "adaptive", stopped by its callback as soon as
@@ -37,10 +37,11 @@ import jax
 import numpy as np
 
 import jaxfit
-from jaxfit import ransac, reference
-from jaxfit.preview import pyplot
+from jaxfit import ransac
+from jaxfit.evaluation import reference
+from jaxfit.evaluation.synthetic import demo_cloud
+from jaxfit.io.preview import pyplot
 from jaxfit.shapes import REGISTRY
-from jaxfit.synthetic import demo_cloud
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SHAPES = ("plane", "sphere", "cylinder")

@@ -1,4 +1,4 @@
-"""Point-hypothesis evaluations per second: jaxfit's kernel against jaxfit.reference.
+"""Point-hypothesis evaluations per second: jaxfit's kernel against jaxfit.evaluation.reference.
 
 For each primitive, N in {1e3, 1e4, 1e5, 1e6} and H in {1024, 4096}, the same H
 hypotheses are sampled,
@@ -27,10 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfit
-from jaxfit import ransac, reference
-from jaxfit.preview import pyplot
+from jaxfit import ransac
+from jaxfit.evaluation import reference
+from jaxfit.evaluation.synthetic import demo_cloud
+from jaxfit.io.preview import pyplot
 from jaxfit.shapes import REGISTRY
-from jaxfit.synthetic import demo_cloud
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -58,7 +58,7 @@ def _cmd_fit(args):
 def _cmd_demo(args):
     if args.shape is None:
         return _demo_decomposition(args)
-    from .synthetic import demo_cloud
+    from .evaluation.synthetic import demo_cloud
 
     points, truth, _ = demo_cloud(args.shape, seed=args.seed)
     print(f"demo: {len(points)} points, half of them uniform outliers, around a known "
@@ -138,7 +138,7 @@ def _report_decomposition(result, out):
 
 
 def _cmd_decompose(args):
-    from .decompose import decompose
+    from .decomposition import decompose
 
     result = decompose(args.input, gain=args.gain, min_points=args.min_points,
                        num_points=args.num_points, key=args.seed, progress=True)
@@ -146,8 +146,8 @@ def _cmd_decompose(args):
 
 
 def _demo_decomposition(args):
-    from .decompose import decompose
-    from .synthetic import composite
+    from .decomposition import decompose
+    from .evaluation.synthetic import composite
 
     points, models, _ = composite(args.object, seed=args.seed)
     print(f"demo: a {args.object} of {len(points)} points sampled from "
@@ -161,7 +161,7 @@ def _demo_decomposition(args):
 
 
 def _cmd_evaluate(args):
-    from . import evaluate
+    from .evaluation import evaluate
 
     rows = evaluate.run(args.shape, args.scenario, repeats=args.repeats, count=args.count,
                         seed=args.seed, normals=args.normals, estimator=args.estimator)

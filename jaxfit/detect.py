@@ -113,14 +113,6 @@ def components(points: np.ndarray, radius: float) -> np.ndarray:
     return np.argsort(by_size)[labels]
 
 
-def surface_normals(model: Model, points: np.ndarray, step: float) -> np.ndarray:
-    """Unit normals (N, 3) of the model's surface near points (N, 3): the gradient of its
-    signed residual by central differences (one formula for every primitive)."""
-    grad = np.stack([model.residual(points + step * e) - model.residual(points - step * e)
-                     for e in np.eye(3)], axis=1)
-    return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
-
-
 def support(model: Model, points, normals, threshold: float, cos_max: float,
             radius: float) -> np.ndarray:
     """Indices into points (N, 3) of the model's support: the largest connected
@@ -129,7 +121,7 @@ def support(model: Model, points, normals, threshold: float, cos_max: float,
     near = np.flatnonzero(model.distance(points) < threshold)
     if near.size == 0:
         return near
-    along = surface_normals(model, points[near], 0.1 * threshold)
+    along = model.surface_normal(points[near], 0.1 * threshold)
     near = near[np.abs(np.einsum("ij,ij->i", along, normals[near])) >= cos_max]
     if near.size == 0:
         return near

@@ -34,7 +34,7 @@ def axis_angle_deg(a, b):
 def matches(fitted, true, tolerance):
     """Whether a fitted primitive is within ``tolerance`` of the true one: every relative
     size error, and every direction error in radians."""
-    from jaxfit.measures import errors
+    from jaxfit.evaluation.measures import errors
 
     if type(fitted) is not type(true):
         return False

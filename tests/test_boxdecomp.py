@@ -8,7 +8,7 @@ import pytest
 import trimesh
 
 from jaxfit import Box
-from jaxfit.boxdecomp import BoxTree, decompose_boxes, mvbb
+from jaxfit.decomposition.boxdecomp import BoxTree, decompose_boxes, mvbb
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -154,7 +154,7 @@ def test_l_shape_splits_into_its_two_boxes(gain, reference):
 def test_cuts_land_on_the_junctions_between_primitives():
     # The lamp's base is 0.02 thick, as thin as a step of the cut grid (5 % of the
     # 0.41 m height): on the grid alone its leaf kept 0.02 m of the post above it.
-    from jaxfit.synthetic import composite
+    from jaxfit.evaluation.synthetic import composite
 
     points, models, labels = composite("lamp", count=4000, seed=1)
     tree = decompose_boxes(points, gain=0.96, min_points=79, reference="root")
@@ -247,7 +247,7 @@ def graspit(name):
     path = DATA / "graspit" / name
     if not path.is_file():
         pytest.skip(f"shared data not found at {path} (it sits beside the checkout)")
-    from jaxfit.iv import load_iv
+    from jaxfit.io.iv import load_iv
 
     points, _ = trimesh.sample.sample_surface(load_iv(path), 5000, seed=0)
     return points

@@ -28,7 +28,7 @@ def counted(*args, **kwargs):  # jaxfit's kernels are traced only to be exported
 jax.export.export = counted
 import numpy as np
 import jaxfit
-from jaxfit.synthetic import demo_cloud
+from jaxfit.evaluation.synthetic import demo_cloud
 points, _, _ = demo_cloud("plane", count=300, outlier_ratio=0.2, seed=0)
 start = time.perf_counter()
 result = jaxfit.fit(points, "plane", batch_size=64, max_hypotheses=64, refine=False, key=0)

@@ -6,7 +6,7 @@ import numpy as np
 import trimesh
 
 from jaxfit.cli import main
-from jaxfit.synthetic import demo_cloud
+from jaxfit.evaluation.synthetic import demo_cloud
 
 
 def test_demo_writes_json_and_mesh(tmp_path, capsys):

@@ -8,7 +8,7 @@ import pytest
 from conftest import matches
 
 from jaxfit import Cylinder, Sphere, decompose
-from jaxfit.synthetic import composite
+from jaxfit.evaluation.synthetic import composite
 
 #: Object -> a gain at which BoxDecomposition separates its primitives: the lamp's ball
 #: saves too little of the root's volume to be cut off below 0.96.
@@ -100,7 +100,7 @@ def test_graspit_hollow_mug_is_a_body_cylinder_and_a_handle(data_dir, key):
     # mug.iv: a hollow mug (inner and outer wall, a lip, a rounded bottom) with a loop
     # handle on the -x side. Truth (MANIFEST.md): body cylinder r 50, h 100, axis y,
     # centred (3, -10, 0); handle centred (-52, -10, 0), reaching to x = -78.
-    from jaxfit.decompose import load_source
+    from jaxfit.decomposition.psda import load_source
 
     points = load_source(data_dir / "graspit" / "mug.iv", num_points=20000, seed=0)
     result = decompose(points, gain=0.96, key=key)  # (key 1 once lost the handle)
@@ -125,7 +125,7 @@ def test_hull_depth_matches_numpy_for_any_padding():
     depth below the nearest face, far from the origin too."""
     from scipy.spatial import ConvexHull
 
-    from jaxfit.decompose import hull_depth
+    from jaxfit.decomposition.hull import hull_depth
 
     rng = np.random.default_rng(2)
     for count, shift in ((9, 0.0), (300, 1e3), (1500, -50.0)):

@@ -8,7 +8,7 @@ import pytest
 
 import jaxfit
 from jaxfit.detect import choose, components
-from jaxfit.synthetic import scene
+from jaxfit.evaluation.synthetic import scene
 
 SCENES = [  # 3 to 6 primitives: the floor plus objects touching it
     (200, ["sphere", "lying_cylinder"]),

@@ -4,8 +4,8 @@ import csv
 
 import numpy as np
 
-from jaxfit import evaluate, scenarios
 from jaxfit.cli import main
+from jaxfit.evaluation import evaluate, scenarios
 
 
 def test_run_and_write(tmp_path):

@@ -12,8 +12,8 @@ import pytest
 from conftest import SHAPES, axis_angle_deg
 
 import jaxfit
+from jaxfit.evaluation.synthetic import demo_cloud
 from jaxfit.ransac import Status, bucket_size, required_hypotheses, uniform_indices
-from jaxfit.synthetic import demo_cloud
 
 SEEDS = (0, 1, 2)
 
@@ -158,7 +158,7 @@ def test_float64_mode_works():
     code = (
         "import jax; jax.config.update('jax_enable_x64', True)\n"
         "import numpy as np, jaxfit\n"
-        "from jaxfit.synthetic import demo_cloud\n"
+        "from jaxfit.evaluation.synthetic import demo_cloud\n"
         "p, true, _ = demo_cloud('sphere', count=800, seed=1)\n"
         "r = jaxfit.fit(p, 'sphere', batch_size=256)\n"
         "assert abs(r.model.radius - true.radius) < 1e-3 * true.radius, r.model\n"
@@ -275,7 +275,7 @@ def test_fit_batch_errors_name_the_cloud():
 
 @pytest.mark.parametrize("name", ["cylinder", "cone"])
 def test_oriented_estimator_needs_far_fewer_hypotheses_on_incomplete_models(name):
-    from jaxfit.scenarios import make
+    from jaxfit.evaluation.scenarios import make
 
     case = make(name, "RNIM", 0.6, seed=3)
     threshold = 0.01 * case.size
@@ -289,7 +289,7 @@ def test_oriented_estimator_needs_far_fewer_hypotheses_on_incomplete_models(name
 
 
 def test_oriented_box_needs_far_fewer_hypotheses_among_many_outliers():
-    from jaxfit.scenarios import make
+    from jaxfit.evaluation.scenarios import make
 
     case = make("box", "RN", 0.6, seed=3)
     threshold = 0.01 * case.size
@@ -310,7 +310,7 @@ def test_refinement_reaches_the_least_squares_fit(name):
     (cylinder / cone / plane)."""
     from scipy.optimize import least_squares
 
-    from jaxfit.scenarios import make
+    from jaxfit.evaluation.scenarios import make
     from jaxfit.shapes import REGISTRY
 
     case = make(name, "SN", 0.05, seed=3)
@@ -334,7 +334,7 @@ def test_fit_batch_shards_clouds_over_forced_host_devices():
     code = (
         "import jax, numpy as np, jaxfit\n"
         "from jaxfit import ransac\n"
-        "from jaxfit.synthetic import demo_cloud\n"
+        "from jaxfit.evaluation.synthetic import demo_cloud\n"
         "assert len(jax.local_devices()) == 4\n"
         "clouds = [demo_cloud('sphere', seed=s, count=500)[0] for s in range(6)]\n"
         "put = ransac._placer(jax.local_devices())\n"
@@ -372,7 +372,7 @@ def test_user_bounds_hold_before_and_after_refinement():
 
 
 def test_normal_gate_drops_points_whose_normals_disagree():
-    from jaxfit.scenarios import make
+    from jaxfit.evaluation.scenarios import make
 
     case = make("cylinder", "RN", 0.5, count=3000, seed=1)
     # 200 outliers planted on the surface itself, with normals along the axis

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxfit.iv import IVError, load_iv, loads_iv
+from jaxfit.io.iv import IVError, load_iv, loads_iv
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 HEADER = "#Inventor V2.1 ascii\n"

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 import jaxfit
-from jaxfit import measures, scenarios
-from jaxfit.measures import axis_angle_deg, errors
+from jaxfit.evaluation import measures, scenarios
+from jaxfit.evaluation.measures import axis_angle_deg, errors
+from jaxfit.evaluation.synthetic import random_rotation
 from jaxfit.shapes import Box, Cone, Cylinder, Plane, Sphere
-from jaxfit.synthetic import random_rotation
 
 
 def tilt(angle_deg, axis=(0.0, 0.0, 1.0)):

@@ -1,4 +1,4 @@
-"""The NumPy reference (jaxfit.reference) against the JAX engine: the same validity flags
+"""The NumPy reference (jaxfit.evaluation.reference) against the JAX engine: the same validity flags
 and parameters from the same minimal samples, the same MSAC costs and inlier counts, the
 same degenerate cases; and the reference's own RANSAC loop on a noisy sphere.
 
@@ -14,12 +14,12 @@ import pytest
 from conftest import SHAPES
 
 from jaxfit import ransac as engine
-from jaxfit import reference
+from jaxfit.evaluation import reference
+from jaxfit.evaluation.synthetic import demo_cloud, random_model
 from jaxfit.shapes import REGISTRY
 from jaxfit.shapes._geometry import LEN_TOL, MAX_EXTENT, SIN_TOL
 from jaxfit.shapes.box import HISTOGRAM_BINS
 from jaxfit.shapes.cone import MIN_ANGLE
-from jaxfit.synthetic import demo_cloud, random_model
 
 H = 256
 N = 1024

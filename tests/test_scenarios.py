@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from conftest import SHAPES
 
-from jaxfit import scenarios
-from jaxfit.scenarios import RN_LEVELS, SCENARIOS, SN_LEVELS, make
+from jaxfit.evaluation import scenarios
+from jaxfit.evaluation.scenarios import RN_LEVELS, SCENARIOS, SN_LEVELS, make
 from jaxfit.shapes import Box, Cone, Cylinder, Sphere
 
 THESIS_SHAPES = ("sphere", "cylinder", "cone", "box")

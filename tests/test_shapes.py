@@ -10,8 +10,8 @@ from conftest import SHAPES
 
 import jaxfit
 from jaxfit import ransac
+from jaxfit.evaluation.synthetic import random_model
 from jaxfit.shapes import REGISTRY, Box, Cone, Cylinder, Plane, Sphere
-from jaxfit.synthetic import random_model
 
 
 def models(rng, count=3):

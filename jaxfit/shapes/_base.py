@@ -45,6 +45,9 @@ import numpy as np
 #: name -> model class, filled by ``register``.
 REGISTRY: dict[str, type[Model]] = {}
 
+#: Step of the central differences that give a residual's slope in NumPy.
+SLOPE_STEP = 1e-6
+
 # How each field changes when the cloud is mapped by p -> p * scale + shift.
 _POINT, _LENGTH, _INVARIANT = "point", "length", "invariant"
 
@@ -94,6 +97,8 @@ class Model:
     """Base class of the primitives. See the module docstring for the contract."""
 
     name: ClassVar[str]
+    #: RGBA of the primitive in scenes and previews.
+    colour: ClassVar[tuple[int, int, int, int]]
     sample_size: ClassVar[int]
     num_params: ClassVar[int]
     #: Floor on the confidence-based hypothesis count T. The rule assumes any all-inlier
@@ -148,6 +153,29 @@ class Model:
     @staticmethod
     def theta_residual(theta, p, xp):  # pragma: no cover - abstract
         raise NotImplementedError
+
+    @classmethod
+    def residual_slope(cls, theta, p, m, xp, step: float = SLOPE_STEP):
+        """The residual at coordinates ``p`` and its derivative along directions ``m``
+        (both sequences of three arrays, broadcasting as in ``theta_residual``):
+        (residual, slope). Every residual is a distance, whose gradient is the unit
+        surface normal, so the slope is the cosine between ``m`` and that normal: the
+        normal gate's measure. JAX: one JVP; NumPy: a central difference of ``step``."""
+        if xp is np:
+            ahead, back = (cls.theta_residual(
+                theta, tuple(c + s * d for c, d in zip(p, m, strict=True)), np)
+                for s in (step, -step))
+            return cls.theta_residual(theta, p, np), (ahead - back) / (2 * step)
+        return jax.jvp(lambda *c: cls.theta_residual(theta, c, jnp), tuple(p), tuple(m))
+
+    def surface_normal(self, points, step: float = SLOPE_STEP):
+        """Unit normals (N, 3) of the unbounded surface near points (N, 3): the gradient of
+        the residual by central differences of ``step`` (the residual's sign decides the
+        normal's)."""
+        p = components(as_points(points))
+        grad = np.stack([self.residual_slope(self.theta(), p, e, np, step)[1]
+                         for e in np.eye(3)], axis=1)
+        return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
 
     @staticmethod
     def canonicalize(theta):

@@ -73,6 +73,7 @@ class Box(Model):
     extents: np.ndarray
 
     name: ClassVar[str] = "box"
+    colour: ClassVar[tuple[int, int, int, int]] = (46, 204, 113, 255)
     sample_size: ClassVar[int] = 5
     oriented_sample_size: ClassVar[int] = 2
     default_estimator: ClassVar[str] = "oriented"

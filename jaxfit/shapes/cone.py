@@ -42,6 +42,7 @@ class Cone(Model):
     height: np.ndarray
 
     name: ClassVar[str] = "cone"
+    colour: ClassVar[tuple[int, int, int, int]] = (241, 196, 15, 255)
     sample_size: ClassVar[int] = 4
     oriented_sample_size: ClassVar[int] = 3
     default_estimator: ClassVar[str] = "oriented"

@@ -35,6 +35,7 @@ class Cylinder(Model):
     height: np.ndarray
 
     name: ClassVar[str] = "cylinder"
+    colour: ClassVar[tuple[int, int, int, int]] = (52, 152, 219, 255)
     sample_size: ClassVar[int] = 3
     oriented_sample_size: ClassVar[int] = 2
     default_estimator: ClassVar[str] = "oriented"

@@ -30,6 +30,7 @@ class Plane(Model):
     radius: np.ndarray | None = None
 
     name: ClassVar[str] = "plane"
+    colour: ClassVar[tuple[int, int, int, int]] = (155, 89, 182, 255)
     sample_size: ClassVar[int] = 3
     axis_index: ClassVar[int] = 0  # the normal
     num_params: ClassVar[int] = 4

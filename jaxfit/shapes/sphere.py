@@ -27,6 +27,7 @@ class Sphere(Model):
     radius: np.ndarray
 
     name: ClassVar[str] = "sphere"
+    colour: ClassVar[tuple[int, int, int, int]] = (231, 76, 60, 255)
     sample_size: ClassVar[int] = 4
     oriented_sample_size: ClassVar[int] = 2
     radius_index: ClassVar[int] = 3

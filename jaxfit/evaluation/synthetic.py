@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _checks
-from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
-from .shapes import _geometry as g
+from .. import _checks
+from ..shapes import Box, Cone, Cylinder, Model, Plane, Sphere
+from ..shapes import _geometry as g
 
 
 def random_rotation(rng) -> np.ndarray:

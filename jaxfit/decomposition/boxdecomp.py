@@ -57,7 +57,7 @@ import functools
 
 import numpy as np
 
-from .shapes import Box
+from ..shapes import Box
 
 __all__ = ["DEFAULT_CUTS", "BoxNode", "BoxTree", "box_volume", "decompose_boxes", "mvbb",
            "volume_floor"]

@@ -32,7 +32,7 @@ import itertools
 
 import numpy as np
 
-from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
+from ..shapes import Box, Cone, Cylinder, Model, Plane, Sphere
 
 #: The six assignments of fitted box axes to true ones.
 _PERMUTATIONS = tuple(itertools.permutations(range(3)))

@@ -48,9 +48,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _checks
-from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
-from .shapes import _geometry as g
+from .. import _checks
+from ..shapes import Box, Cone, Cylinder, Model, Plane, Sphere
+from ..shapes import _geometry as g
 from .synthetic import random_model
 
 SCENARIOS = ("RN", "RNIM", "SN", "SNIM")

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..ransac import fit_batch
 from . import measures, scenarios
-from .ransac import fit_batch
 
 SHAPES = ("sphere", "cylinder", "cone", "box")
 #: The measures shown in tables and plots, per primitive (all are kept in the CSV).
@@ -99,7 +99,7 @@ def run(shapes=SHAPES, scenario_names=scenarios.SCENARIOS, *, repeats: int = 10,
 
 def estimator_name(shape: str, estimator: str | None, normals: str) -> str:
     """How a row was fitted: "thesis", or "oriented (estimated normals)" / "(true ...)"."""
-    from .shapes import REGISTRY
+    from ..shapes import REGISTRY
 
     est = REGISTRY[shape].estimator(estimator)
     return f"oriented ({normals} normals)" if est.uses_normals else est.name
@@ -153,7 +153,7 @@ def markdown(summary) -> str:
 
 def plot(summary, path: Path, shape: str):
     """Medians of each measure against the noise level, one line per scenario."""
-    from .preview import pyplot
+    from ..io.preview import pyplot
 
     plt = pyplot()
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .decompose import COLOURS
+from ..shapes import REGISTRY
 
 
 def view_angles(points) -> tuple[float, float]:
@@ -62,11 +62,12 @@ def render(decomposition, path, *, size=(11, 5.5), dpi=110):
     kinds = []
     for part in decomposition.parts:
         mesh = part.model.to_mesh()
-        right.add_collection3d(Poly3DCollection(mesh.triangles, facecolors=_shaded(mesh, COLOURS[
-            part.kind]), edgecolors="none", alpha=0.95))
+        right.add_collection3d(Poly3DCollection(
+            mesh.triangles, facecolors=_shaded(mesh, part.model.colour), edgecolors="none",
+            alpha=0.95))
         kinds.append(part.kind)
     right.set_title(f"{len(decomposition.parts)} primitives", fontsize=10)
-    right.legend(handles=[Patch(color=np.asarray(COLOURS[k][:3]) / 255, label=k)
+    right.legend(handles=[Patch(color=np.asarray(REGISTRY[k].colour[:3]) / 255, label=k)
                           for k in dict.fromkeys(kinds)], loc="upper right", fontsize=8)
     for ax in (left, right):
         ax.view_init(elev=elevation, azim=azimuth)

@@ -29,12 +29,12 @@ import math
 
 import numpy as np
 
-from . import _checks
-from .ransac import required_hypotheses
-from .shapes import Model
-from .shapes._geometry import LEN_TOL, MAX_EXTENT, SIN_TOL
-from .shapes.box import HISTOGRAM_BINS
-from .shapes.cone import MIN_ANGLE
+from .. import _checks
+from ..ransac import required_hypotheses
+from ..shapes import Model
+from ..shapes._geometry import LEN_TOL, MAX_EXTENT, SIN_TOL
+from ..shapes.box import HISTOGRAM_BINS
+from ..shapes.cone import MIN_ANGLE
 
 #: Memory budget of one block of ``score_batch`` (bytes), and the number of (block, H)
 #: float64 temporaries a residual formula keeps alive at once (the cone's needs ~8).

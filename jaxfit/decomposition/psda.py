@@ -87,15 +87,13 @@ import sys
 import time
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from . import _checks
-from ._cache import stored_jit
+from .. import _checks
+from ..ransac import fit_batch
+from ..shapes import Box, Cone, Cylinder, Model
 from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
-from .ransac import bucket_size, fit_batch
-from .shapes import Box, Cone, Cylinder, Model
+from .hull import hull_depth
 
 SHAPES = ("sphere", "cylinder", "cone", "box")
 #: Part threshold: this fraction of the diagonal of the part's bounding box. Wider than
@@ -112,17 +110,9 @@ MAX_OVERSHOOT = 0.05
 #: judged on the others, its outside (``_outside``).
 HOLLOW = 0.25
 HOLLOW_DEPTH = 2.0
-#: Points per step of the hull-depth kernel (see ``_hull_depth``).
-HULL_BLOCK = 256
 #: Ownership in reassignment skips implausible candidates unless the best plausible one
 #: is more than this many times as far from its part's points as the part's MVBB.
 OWNER_SLACK = 2.0
-#: Colours (RGBA) of the primitives in scenes and previews.
-COLOURS = {
-    "sphere": (231, 76, 60, 255), "cylinder": (52, 152, 219, 255),
-    "cone": (241, 196, 15, 255), "box": (46, 204, 113, 255), "plane": (155, 89, 182, 255),
-    "mvbb": (127, 140, 141, 255),
-}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,7 +182,7 @@ class Decomposition:
         scene = trimesh.Scene()
         for i, part in enumerate(self.parts):
             mesh = part.model.to_mesh()
-            mesh.visual.face_colors = COLOURS[part.kind]
+            mesh.visual.face_colors = part.model.colour
             scene.add_geometry(mesh, node_name=f"part{i}_{part.kind}")
         return scene
 
@@ -217,7 +207,7 @@ class Decomposition:
 
     def save(self, directory) -> Path:
         """Write parts.json, decomposition.glb and preview.png into ``directory``."""
-        from .preview import render
+        from ..io.preview import render
 
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
@@ -242,7 +232,7 @@ def load_source(source, *, num_points: int = 20000, seed: int = 0) -> np.ndarray
     (anything ``jaxfit.io.load_points`` reads, Open Inventor ``.iv`` included)."""
     import trimesh
 
-    from .io import load_points, sample_surface
+    from ..io import load_points, sample_surface
 
     if isinstance(source, trimesh.Trimesh):
         return _checks.cloud(sample_surface(source, num_points, seed))
@@ -450,40 +440,6 @@ def _outside(cloud, threshold):
         return cloud
     outside = hull_depth(cloud, equations) <= HOLLOW_DEPTH * threshold
     return cloud[outside] if 1.0 - outside.mean() >= HOLLOW else cloud
-
-
-def hull_depth(cloud, equations):
-    """Depth (N,) of points cloud (N, 3) below the nearest of the hull faces
-    ``equations`` (F, 4) (scipy's: outward unit normal, offset), in float32 about the
-    cloud's centre.
-
-    One jitted kernel over blocks of points, faces on the vector axis, both padded to
-    ``bucket_size`` (few compilations). In NumPy the (points, faces) matrix of the 20k-point mug
-    (7,778 faces) took 1.2 GB and 4.9 s on first use, 0.55-0.82 s in blocks; the kernel
-    takes 0.05 s, and its float32 depths differ by ~1e-5 of the mug's size.
-    """
-    centre = cloud.mean(axis=0)
-    points = np.zeros((bucket_size(len(cloud)), 3), np.float32)
-    points[: len(cloud)] = cloud - centre
-    faces = np.zeros((bucket_size(len(equations)), 4), np.float32)
-    faces[:, 3] = -np.inf  # padding faces: never the nearest
-    faces[: len(equations), :3] = equations[:, :3]
-    faces[: len(equations), 3] = equations[:, 3] + equations[:, :3] @ centre
-    return np.asarray(_hull_depth(points, faces), np.float64).reshape(-1)[: len(cloud)]
-
-
-def _hull_depth_blocks(points, faces):
-    """-max over faces (F, 4) of the signed distances of points (B, 3), B a multiple of
-    HULL_BLOCK: (B / HULL_BLOCK, HULL_BLOCK)."""
-
-    def block(p):
-        return -jnp.max(p[:, 0:1] * faces[:, 0] + p[:, 1:2] * faces[:, 1]
-                        + p[:, 2:3] * faces[:, 2] + faces[:, 3], axis=1)
-
-    return jax.lax.map(block, points.reshape(-1, HULL_BLOCK, 3))
-
-
-_hull_depth = stored_jit(_hull_depth_blocks)
 
 
 def _overshoot(model: Model, bounds: Box) -> float:

@@ -1,0 +1,9 @@
+"""Whole objects as sets of primitives: BoxDecomposition (``boxdecomp``), the PSDA that
+fits every primitive to every part (``psda``), and the hull-depth kernel it uses to find
+hollow parts (``hull``)."""
+
+from .boxdecomp import BoxNode, BoxTree, decompose_boxes, mvbb
+from .psda import Candidate, Decomposition, Part, decompose, load_source
+
+__all__ = ["decompose", "Decomposition", "Part", "Candidate", "load_source", "decompose_boxes",
+           "mvbb", "BoxTree", "BoxNode"]
