@@ -1,9 +1,14 @@
 """Shared fixtures. Kernels compile once per (shape, batch size, point bucket): tests use
 the default batch size and clouds of 2000 points (bucket 2048) or fewer than 1024
-points (bucket 1024), so the whole suite compiles each kernel at most twice."""
+points (bucket 1024), so the whole suite compiles each kernel at most twice.
 
+Randomness: ``getkey()`` gives a fresh JAX key each call (as optimistix's tests do) and
+``numpy_rng(key)`` a NumPy generator from one, for the NumPy side (models, points)."""
+
+import itertools
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 
@@ -19,10 +24,52 @@ def rng():
 
 
 @pytest.fixture
+def getkey():
+    """A function returning a fresh JAX PRNG key each call: the i-th call gives
+    ``fold_in(key(0), i)``, so a test's keys are the same on every run and in any order of
+    tests, and no two calls within a test share one."""
+    base, calls = jax.random.key(0), itertools.count()
+    return lambda: jax.random.fold_in(base, next(calls))
+
+
+def numpy_rng(key) -> np.random.Generator:
+    """A NumPy generator seeded from a JAX key (for the NumPy side of a test)."""
+    return np.random.default_rng(np.asarray(jax.random.key_data(key)))
+
+
+def x64():
+    """Context manager: float64 JAX inside (``jax.enable_x64`` where JAX has it, else
+    ``jax.experimental.enable_x64``), leaving the rest of the suite in float32."""
+    if callable(getattr(jax, "enable_x64", None)):
+        return jax.enable_x64(True)
+    from jax.experimental import enable_x64
+
+    return enable_x64()
+
+
+@pytest.fixture
 def data_dir():
     if not DATA.is_dir():
         pytest.skip(f"shared data not found at {DATA} (it sits beside the checkout)")
     return DATA
+
+
+def estimate(cls, samples, support, normals=None, estimator: str = "thesis"):
+    """A primitive's estimator over a batch, as the engine calls it (the shape's public
+    seam, ``cls.estimator``): samples (H, k, 3), support (M, 3) points in the unit ball,
+    and for an estimator that reads them the samples' normals (H, k, 3) -> thetas (H, P),
+    valid (H,)."""
+    est = cls.estimator(estimator)
+    normals = normals if est.uses_normals else None
+    return jax.vmap(est.estimate, in_axes=(0, 0 if est.uses_normals else None, None))(
+        samples, normals, support)
+
+
+def unit_ball(points):
+    """Centre (3,) and scale that map points (N, 3) into the unit ball (the frame the
+    engine estimates in: the box's histogram bins span [-1, 1])."""
+    center = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    return center, float(np.linalg.norm(points - center, axis=1).max())
 
 
 def axis_angle_deg(a, b):
