@@ -37,7 +37,9 @@ import jax
 import numpy as np
 
 import jaxfit
-from jaxfit import ransac
+from jaxfit.engine import required_hypotheses
+from jaxfit.engine.cloud import normalise
+from jaxfit.engine.fit import bounded
 from jaxfit.evaluation import reference
 from jaxfit.evaluation.synthetic import demo_cloud
 from jaxfit.io.preview import pyplot
@@ -130,7 +132,7 @@ def run_jaxfit(points, shape, batch_size, seed, repeats, refine=True):
 def run_reference(points, shape, seed):
     """The NumPy loop on the cloud normalised as jaxfit does, its model bounded the same
     way (both outside the timing: they are the same code for every method)."""
-    center, scale = ransac._normalise(points)
+    center, scale = normalise(points)
     unit = (points - center) / scale
     seconds, out = _timed(lambda: reference.ransac(
         unit, shape, threshold=THRESHOLD / scale, confidence=CONFIDENCE,
@@ -138,7 +140,7 @@ def run_reference(points, shape, seed):
     if not np.all(np.isfinite(out["theta"])):
         return seconds, None, out["num_hypotheses"]
     cls = REGISTRY[shape]
-    model = ransac._bounded(cls, out["theta"], unit, THRESHOLD / scale).rescaled(scale, center)
+    model = bounded(cls, out["theta"], unit, THRESHOLD / scale).rescaled(scale, center)
     return seconds, model_params(model), out["num_hypotheses"]
 
 
@@ -147,7 +149,7 @@ def _stop_at_confidence(n_points, sample_size):
 
     def callback(state):
         ratio = len(state["best_inliers"]) / n_points
-        needed = ransac.required_hypotheses(ratio, sample_size, CONFIDENCE)
+        needed = required_hypotheses(ratio, sample_size, CONFIDENCE)
         return state["iteration"] + 1 >= needed
 
     return callback

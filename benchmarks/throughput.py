@@ -27,7 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfit
-from jaxfit import ransac
+from jaxfit.engine.cloud import normalise
+from jaxfit.engine.cloud import padded as pad
+from jaxfit.engine.kernel import SUPPORT, batch_best
 from jaxfit.evaluation import reference
 from jaxfit.evaluation.synthetic import demo_cloud
 from jaxfit.io.preview import pyplot
@@ -51,15 +53,15 @@ def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int 
             vec_hypotheses: int | None = None) -> dict:
     cls = REGISTRY[name]
     points, _, _ = demo_cloud(name, count=n, seed=seed)
-    center, scale = ransac._normalise(points)
+    center, scale = normalise(points)
     unit = (points - center) / scale
     threshold = 0.01
-    padded = ransac._padded(unit, np.float32)
+    padded = pad(unit, np.float32)
     key = jax.random.key(seed)
     thr = jnp.float32(threshold)
 
     def kernel():
-        jax.block_until_ready(ransac.batch_best(cls, hypotheses, padded, n, key, thr))
+        jax.block_until_ready(batch_best(cls, hypotheses, padded, n, key, thr))
 
     kernel()  # compile
     t_jax = _seconds(kernel, 9)
@@ -73,7 +75,7 @@ def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int 
 
     rng = np.random.default_rng(seed)
     samples = unit[rng.integers(0, n, (hypotheses, cls.sample_size))]
-    support = unit[rng.integers(0, n, ransac.SUPPORT)]
+    support = unit[rng.integers(0, n, SUPPORT)]
 
     vec = vec_hypotheses or hypotheses
 

@@ -10,12 +10,13 @@ from ._cache import compilation_cache_dir
 from ._checks import FitError
 from .decomposition import Decomposition, Part, decompose
 from .detect import Detection, Scene, detect
+from .engine import Bounds, FitOptions, FitResult, Status, fit, fit_batch
 from .normals import estimate_normals
-from .ransac import FitResult, Status, fit, fit_batch
 from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
 
 __all__ = [
-    "fit", "fit_batch", "decompose", "Decomposition", "Part", "FitResult", "Status", "FitError",
+    "fit", "fit_batch", "FitOptions", "Bounds", "FitResult", "Status", "FitError", "decompose",
+    "Decomposition", "Part",
     "Model", "Plane", "Sphere", "Cylinder", "Cone", "Box", "compilation_cache_dir",
     "estimate_normals", "detect", "Detection", "Scene",
 ]
@@ -24,6 +25,7 @@ __all__ = [
 #: jaxfit.scenarios`` and ``from jaxfit import scenarios`` still work and give the new
 #: module itself, imported only when first asked for (most pull in trimesh or matplotlib).
 MOVED = {
+    "ransac": "engine",
     "boxdecomp": "decomposition.boxdecomp",
     "decompose": "decomposition.psda",
     "iv": "io.iv",

@@ -34,7 +34,7 @@ import numpy as np
 
 from . import _checks
 from .normals import estimate_normals
-from .ransac import DEFAULT_THRESHOLD_FRACTION, fit
+from .engine import DEFAULT_THRESHOLD_FRACTION, fit
 from .shapes import Model
 
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")

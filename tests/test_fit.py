@@ -12,8 +12,9 @@ import pytest
 from conftest import SHAPES, axis_angle_deg
 
 import jaxfit
+from jaxfit.engine import Status, bucket_size, required_hypotheses
+from jaxfit.engine.sampling import uniform_indices
 from jaxfit.evaluation.synthetic import demo_cloud
-from jaxfit.ransac import Status, bucket_size, required_hypotheses, uniform_indices
 
 SEEDS = (0, 1, 2)
 
@@ -86,11 +87,11 @@ def test_same_key_same_result_and_keys_matter():
     assert not np.array_equal(raw.model.center, other.model.center)
     # An int seed's cloud keys are made in one jitted call: the same as from its key,
     # up to the largest seed (seeds are taken modulo 2**32).
-    from jaxfit import ransac
+    from jaxfit.engine import keys
 
     for seed in (0, 2**31, 2**32 - 1):
-        fused = ransac._seed_cloud_keys(seed, jax.config.jax_default_prng_impl, 4)
-        made = ransac._cloud_keys(jax.random.key(seed), 4)
+        fused = keys.seed_cloud_keys(seed, jax.config.jax_default_prng_impl, 4)
+        made = keys.cloud_keys(jax.random.key(seed), 4)
         assert np.array_equal(jax.random.key_data(fused), jax.random.key_data(made))
 
 
@@ -104,7 +105,7 @@ def test_stopping_rule_values():
 
 
 def test_refinement_rows_cover_the_whole_cloud():
-    from jaxfit.ransac import lo_rows, spread_rows
+    from jaxfit.engine.refine import lo_rows, spread_rows
 
     assert [lo_rows(n) for n in (10, 300, 500, 1024, 1500, 50_000)] == [256, 512, 512, 1024,
                                                                        2048, 2048]
@@ -162,9 +163,9 @@ def test_float64_mode_works():
         "p, true, _ = demo_cloud('sphere', count=800, seed=1)\n"
         "r = jaxfit.fit(p, 'sphere', batch_size=256)\n"
         "assert abs(r.model.radius - true.radius) < 1e-3 * true.radius, r.model\n"
-        "from jaxfit import ransac\n"
+        "from jaxfit.engine.cloud import padded\n"
         "import jax.numpy as jnp\n"
-        "assert ransac._padded(p, jax.dtypes.canonicalize_dtype(np.float64)).dtype == jnp.float64\n"
+        "assert padded(p, jax.dtypes.canonicalize_dtype(np.float64)).dtype == jnp.float64\n"
         "print('ok')\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
@@ -229,25 +230,25 @@ def test_few_hard_clouds_run_alone_and_give_the_same_results(monkeypatch):
     """After the first batch only the hard clouds (75 % outliers) keep searching; the
     kernel and refinement then run on them alone (subset_rows), with the results of
     running every cloud."""
-    from jaxfit import ransac
+    from jaxfit.engine import loop
 
     mask = np.zeros(64, bool)
     mask[[5, 40]] = True
-    np.testing.assert_array_equal(ransac.subset_rows(mask), [5, 40, 5, 5])  # 64 / 16 rows
+    np.testing.assert_array_equal(loop.subset_rows(mask), [5, 40, 5, 5])  # 64 / 16 rows
     mask[:20] = True
-    assert ransac.subset_rows(mask) is None  # 21 do not fit in 4: every slot
-    assert ransac.subset_rows(mask[:8]) is None  # too few slots to split
+    assert loop.subset_rows(mask) is None  # 21 do not fit in 4: every slot
+    assert loop.subset_rows(mask[:8]) is None  # too few slots to split
     one = np.eye(1, 256, 7, dtype=bool)[0]
-    assert len(ransac.subset_rows(one, 2)) == 16  # 256 / 16; 1 is no multiple of 2 devices
+    assert len(loop.subset_rows(one, 2)) == 16  # 256 / 16; 1 is no multiple of 2 devices
 
     clouds = [demo_cloud("sphere", count=500, outlier_ratio=0.75 if i in (3, 11) else 0.3,
                          seed=i)[0] for i in range(17)]
     calls = []
-    kernel = ransac._batch_best_many
-    monkeypatch.setattr(ransac, "_batch_best_many",
+    kernel = loop.batch_best_many
+    monkeypatch.setattr(loop, "batch_best_many",
                         lambda *a, **k: calls.append(a[3].shape[0]) or kernel(*a, **k))
     subset = jaxfit.fit_batch(clouds, "sphere", key=2)
-    monkeypatch.setattr(ransac, "subset_rows", lambda mask, multiple=1: None)
+    monkeypatch.setattr(loop, "subset_rows", lambda mask, multiple=1: None)
     every = jaxfit.fit_batch(clouds, "sphere", key=2)
     assert calls[0] == 32 and 2 in calls  # later batches ran on 2 rows of the 32
     assert [r.num_hypotheses for r in subset] == [r.num_hypotheses for r in every]
@@ -333,11 +334,11 @@ def test_fit_batch_shards_clouds_over_forced_host_devices():
     # Four CPU devices exist only in a fresh process started with the flag.
     code = (
         "import jax, numpy as np, jaxfit\n"
-        "from jaxfit import ransac\n"
+        "from jaxfit.engine.backend import placer\n"
         "from jaxfit.evaluation.synthetic import demo_cloud\n"
         "assert len(jax.local_devices()) == 4\n"
         "clouds = [demo_cloud('sphere', seed=s, count=500)[0] for s in range(6)]\n"
-        "put = ransac._placer(jax.local_devices())\n"
+        "put = placer(jax.local_devices())\n"
         "assert len(put(np.zeros((8, 3))).sharding.device_set) == 4\n"
         "res = jaxfit.fit_batch(clouds, 'sphere', key=1, batch_size=256)\n"
         "print(' '.join(f'{r.model.radius:.6f}' for r in res))\n"

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from conftest import SHAPES
 
-from jaxfit import ransac as engine
+from jaxfit.engine import backend, kernel, scoring
+from jaxfit.engine.cloud import padded as pad
 from jaxfit.evaluation import reference
 from jaxfit.evaluation.synthetic import demo_cloud, random_model
 from jaxfit.shapes import REGISTRY
@@ -25,8 +26,8 @@ H = 256
 N = 1024
 THRESHOLD = 0.01
 
-jax_estimate = jax.jit(engine.estimate_batch, static_argnums=0)
-jax_score = jax.jit(engine.score, static_argnums=0)
+jax_estimate = jax.jit(kernel.estimate_batch, static_argnums=0)
+jax_score = jax.jit(scoring.score, static_argnums=0)
 
 
 def unit_cloud(shape, seed=0):
@@ -343,10 +344,10 @@ def test_tuned_kernel_equals_plain_kernel(shape):
     # the kernel picks: same best hypothesis, cost and inlier count as a plain jax.jit.
     cls = REGISTRY[shape]
     cloud, _ = unit_cloud(shape)
-    padded = jnp.asarray(engine._padded(cloud, np.float32))
+    padded = jnp.asarray(pad(cloud, np.float32))
     args = (padded, cloud.shape[0], jax.random.key(3), jnp.float32(THRESHOLD))
-    tuned = engine.batch_best(cls, 256, *args)
-    plain = jax.jit(engine._batch_best, static_argnums=(0, 1))(cls, 256, *args)
+    tuned = kernel.batch_best(cls, 256, *args)
+    plain = jax.jit(kernel.batch_best.__wrapped__, static_argnums=(0, 1))(cls, 256, *args)
     np.testing.assert_allclose(np.asarray(tuned[0]), np.asarray(plain[0]), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(float(tuned[1]), float(plain[1]), rtol=1e-5)
     assert int(tuned[2]) == int(plain[2]) and int(tuned[3]) == int(plain[3])
@@ -354,8 +355,8 @@ def test_tuned_kernel_equals_plain_kernel(shape):
 
 def test_refused_xla_options_fall_back_with_a_warning(monkeypatch):
     # A jax version that drops an experimental option must not break fitting.
-    monkeypatch.setattr(engine, "CPU_OPTIONS", {"xla_cpu_no_such_option_for_jaxfit": True})
-    double = engine._jit_tuned(lambda x: 2 * x)
+    monkeypatch.setattr(backend, "CPU_OPTIONS", {"xla_cpu_no_such_option_for_jaxfit": True})
+    double = backend.jit_tuned(lambda x: 2 * x)
     if jax.default_backend() != "cpu":
         pytest.skip("the options apply to the CPU backend only")
     with pytest.warns(RuntimeWarning, match="XLA CPU options refused"):

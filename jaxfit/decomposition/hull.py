@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import stored_jit
-from ..ransac import bucket_size
+from ..engine import bucket_size
 
 #: Points per step of the hull-depth kernel (see ``_hull_depth_blocks``).
 HULL_BLOCK = 256

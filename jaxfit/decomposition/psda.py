@@ -90,7 +90,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import _checks
-from ..ransac import fit_batch
+from ..engine import fit_batch
 from ..shapes import Box, Cone, Cylinder, Model
 from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import hull_depth

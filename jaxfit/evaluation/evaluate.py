@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..ransac import fit_batch
+from ..engine import fit_batch
 from . import measures, scenarios
 
 SHAPES = ("sphere", "cylinder", "cone", "box")

@@ -30,7 +30,7 @@ import math
 import numpy as np
 
 from .. import _checks
-from ..ransac import required_hypotheses
+from ..engine import required_hypotheses
 from ..shapes import Model
 from ..shapes._geometry import LEN_TOL, MAX_EXTENT, SIN_TOL
 from ..shapes.box import HISTOGRAM_BINS

@@ -105,7 +105,8 @@ class Model:
     #: sample gives a good model; the thesis's cylinder and cone also need their three
     #: circle points on one cross-section, which it does not model.
     min_hypotheses: ClassVar[int] = 0
-    #: Position in theta of the radius a user's ``radius_range`` bounds (None: none).
+    #: Position in theta of the radius a user's ``radius_range`` bounds (None: none;
+    #: see ``jaxfit.engine.Bounds``).
     radius_index: ClassVar[int | None] = None
     #: Start in theta of the unit axis (or normal) a user's ``axis_prior`` bounds.
     axis_index: ClassVar[int | None] = None
@@ -136,19 +137,6 @@ class Model:
         if name not in ESTIMATORS:
             raise ValueError(f"unknown estimator {name!r}; expected one of {ESTIMATORS}")
         return cls.estimators.get(name, cls.estimators["thesis"])
-
-    @classmethod
-    def within(cls, theta, limits):
-        """Whether hypothesis theta (P,) honours the user's limits (6,): radius in
-        [limits[0], limits[1]] and |axis . limits[2:5]| >= limits[5] (JAX, no raising)."""
-        ok = jnp.asarray(True)
-        if cls.radius_index is not None:
-            radius = theta[cls.radius_index]
-            ok &= (radius >= limits[0]) & (radius <= limits[1])
-        if cls.axis_index is not None:
-            axis = theta[cls.axis_index:cls.axis_index + 3]
-            ok &= jnp.abs(jnp.dot(axis, limits[2:5])) >= limits[5]
-        return ok
 
     @staticmethod
     def theta_residual(theta, p, xp):  # pragma: no cover - abstract

@@ -1,0 +1,85 @@
+"""Where the engine meets the device: every ``jax.default_backend()`` switch, the CPU
+compiler options, and how per-cloud arrays are spread over the local devices.
+
+The same code runs on a CPU and a GPU; only the choices here differ (measurements of
+each: docs/engine.md).
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+
+import jax
+import numpy as np
+
+from .._cache import stored_jit
+
+#: Per-function XLA CPU options for the scoring kernel (PERF.md), passed to ``jax.jit``
+#: so users' ``XLA_FLAGS`` stay untouched; a jax that refuses one gets the defaults.
+CPU_OPTIONS = {
+    "xla_cpu_experimental_ynn_fusion_type": "",
+    "xla_cpu_prefer_vector_width": 512,
+    "xla_cpu_enable_fast_min_max": True,
+}
+#: On the CPU the scoring kernel splits H hypotheses into this many independent loops
+#: when each gets at least BLOCK_MIN of them: XLA's CPU runtime runs independent loops
+#: side by side, but splits one loop's body over the cores only when it is large.
+HYPOTHESIS_BLOCKS = 2
+BLOCK_MIN = 256
+
+
+def on_cpu() -> bool:
+    """Whether the engine runs on the CPU backend."""
+    return jax.default_backend() == "cpu"
+
+
+def hypothesis_blocks(hypotheses: int) -> int:
+    """Independent scoring loops for H hypotheses (1 off the CPU)."""
+    if not on_cpu() or hypotheses % HYPOTHESIS_BLOCKS:
+        return 1
+    return HYPOTHESIS_BLOCKS if hypotheses >= BLOCK_MIN * HYPOTHESIS_BLOCKS else 1
+
+
+def jit_tuned(fn, static_argnames=()):
+    """``stored_jit`` with CPU_OPTIONS on the CPU, and without them where they are refused
+    (one ``RuntimeWarning``, then the defaults for the rest of the process)."""
+    plain = stored_jit(fn, static_argnames)
+    if not on_cpu():
+        return plain
+    tuned = stored_jit(fn, static_argnames, CPU_OPTIONS)
+    state = {"tuned": True}
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if state["tuned"]:
+            try:
+                return tuned(*args, **kwargs)
+            except Exception as err:  # an unknown or changed XLA option
+                if "option" not in str(err).lower():
+                    raise
+                state["tuned"] = False
+                warnings.warn(f"jaxfit: XLA CPU options refused ({err}); using defaults",
+                              RuntimeWarning, stacklevel=2)
+        return plain(*args, **kwargs)
+
+    return call
+
+
+def slots(count: int, devices: int) -> int:
+    """Rows of the per-cloud arrays for ``count`` clouds: a power of two (fewer
+    compilations) and a multiple of the device count."""
+    rows = max(1 << (count - 1).bit_length(), devices)
+    return -(-rows // devices) * devices
+
+
+def placer(devices):
+    """How the host loop puts per-cloud arrays (clouds first) on the devices: split along
+    the cloud axis over all local devices (GPUs, or CPU devices forced with
+    ``--xla_force_host_platform_device_count``), so every jitted call runs on all of
+    them; on one device, plain arrays (jit takes NumPy arrays on its fast path)."""
+    if len(devices) == 1:
+        return lambda array: array
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("clouds",))
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("clouds"))
+    return lambda array: jax.device_put(array, sharding)

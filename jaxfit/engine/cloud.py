@@ -1,0 +1,129 @@
+"""Input preparation: a user's cloud checked, centred and scaled into the unit ball (so
+float32 keeps its precision far from the origin), and padded to a power-of-two bucket
+with its count of real points (so a new cloud size reuses a compiled kernel)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import numpy as np
+
+from .. import _checks
+from ..shapes import Model
+from ..shapes._geometry import column_bounds, row_norms
+from .keys import normals_key
+from .options import Bounds
+
+#: Smallest point-count bucket; larger clouds pad to the next power of two.
+MIN_BUCKET = 1024
+#: Default threshold as a fraction of the cloud's bounding-box diagonal.
+DEFAULT_THRESHOLD_FRACTION = 0.005
+#: Oriented estimators draw their samples from a random pool of at most this many points,
+#: the only ones whose normals are estimated (when none are given): ~2048^2 distinct
+#: pairs are plenty, and estimating every normal of a large cloud cost seconds.
+NORMAL_POOL = 2048
+#: Neighbours of the PCA normals estimated for a fit.
+NORMAL_NEIGHBOURS = 16
+
+
+def bucket_size(n: int) -> int:
+    """Padded point count for a cloud of n points: a power of two, at least MIN_BUCKET."""
+    return max(MIN_BUCKET, 1 << (int(n) - 1).bit_length())
+
+
+def normalise(points: np.ndarray, bounds=None):
+    """Centre (3,) and scale that map the cloud (N, 3) into the unit ball; ``bounds``:
+    the cloud's (lo, hi) if already known."""
+    lo, hi = column_bounds(points) if bounds is None else bounds
+    center = 0.5 * (lo + hi)
+    scale = float(row_norms(points - center).max())
+    if not scale > 0:
+        raise ValueError("all points coincide: there is no shape to fit")
+    return center, scale
+
+
+def padded(rows: np.ndarray, dtype, size: int | None = None):
+    """rows (N, 3) as ``dtype``, zero-padded to ``size`` rows (default its bucket)."""
+    n = rows.shape[0]
+    out = np.zeros((size or bucket_size(n), 3), dtype=dtype)
+    out[:n] = rows
+    return out
+
+
+@dataclasses.dataclass
+class Cloud:
+    """One validated cloud, in the normalised frame the kernels see."""
+
+    points: np.ndarray  # (N, 3) float64, as given
+    # (M, 3) unit normals of points[pool] (all N points without a pool), kept when the
+    # estimator or the normal gate reads them
+    normals: np.ndarray | None
+    pool: np.ndarray | None  # (M,) indices samples are drawn from (None: all points)
+    center: np.ndarray
+    scale: float
+    threshold: float  # in the cloud's units
+    bounds: Bounds  # the user's bounds, in the cloud's units
+    wanted: np.ndarray | None = None  # indices whose normals are still to be estimated
+
+    @property
+    def gated(self) -> bool:
+        return self.bounds.gated
+
+    @functools.cached_property
+    def unit(self):
+        return (self.points - self.center) / self.scale
+
+    def unit_bounds(self) -> Bounds:
+        """The bounds in the normalised frame."""
+        return self.bounds.scaled(self.scale)
+
+    def kernel_rows(self):
+        """Unit points (N, 3) with the pool first, the pool's normals (M, 3) or None,
+        and M: the kernel draws samples among the first M rows and scores all."""
+        if self.pool is None:
+            return self.unit, self.normals, len(self.points)
+        rest = np.setdiff1d(np.arange(len(self.points)), self.pool, assume_unique=True)
+        return self.unit[np.concatenate([self.pool, rest])], self.normals, len(self.pool)
+
+
+def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, key, index,
+            bounds: Bounds) -> Cloud:
+    """Cloud ``index`` of a call, validated; ``key`` is the call's (see ``normals_key``).
+    Normals the fit needs and was not given are left for ``estimate_normals``: its
+    ``normals`` is None and ``wanted`` holds the indices to estimate them at."""
+    cloud = _checks.points_for(points, cls)
+    normals = _checks.normals_for(normals, cloud)
+    lo, hi = column_bounds(cloud)
+    center, scale = normalise(cloud, (lo, hi))
+    if threshold is None:
+        threshold = DEFAULT_THRESHOLD_FRACTION * np.linalg.norm(hi - lo)
+    threshold = _checks.positive(threshold, "threshold")
+    pool = wanted = None
+    if not (uses_normals or bounds.gated):
+        normals = None
+    elif normals is None and bounds.gated:  # the gate reads every point's normal
+        wanted = np.arange(len(cloud))
+    elif normals is None:
+        if len(cloud) > NORMAL_POOL:
+            # (derived here only: two fold_ins per cloud cost more than a small cloud's
+            # whole kernel call)
+            pool_key = jax.random.key_data(normals_key(_checks.prng_key(key), index))
+            rng = np.random.default_rng(np.asarray(pool_key))
+            pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
+        wanted = np.arange(len(cloud)) if pool is None else pool
+    return Cloud(cloud, normals, pool, center, scale, threshold, bounds, wanted)
+
+
+def estimate_normals(clouds: list[Cloud]):
+    """Fill in the normals ``prepare`` left wanted, for all clouds in one batched call
+    (scipy's KD-tree: imported only when needed)."""
+    todo = [c for c in clouds if c.wanted is not None]
+    if todo:
+        from ..normals import normals_at_many
+
+        found = normals_at_many([c.points for c in todo], [c.wanted for c in todo],
+                                [min(NORMAL_NEIGHBOURS, len(c.points)) for c in todo])
+        for cloud, normals in zip(todo, found, strict=True):
+            cloud.normals, cloud.wanted = normals, None

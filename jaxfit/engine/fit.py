@@ -1,0 +1,166 @@
+"""``fit`` and ``fit_batch``: check the input, prepare the clouds, run the host loop, and
+turn each cloud's best hypothesis into a bounded model in the input's coordinates."""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+
+import numpy as np
+
+from .. import _checks
+from ..shapes import Model
+from .cloud import Cloud, estimate_normals, prepare
+from .loop import search
+from .options import FitOptions
+from .stopping import Status
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """Outcome of ``jaxfit.fit``.
+
+    model : the fitted, bounded primitive (in the input's coordinates).
+    inliers : (N,) bool, points within ``threshold`` of the bounded model
+        (``model.distance``).
+    num_inliers : int.
+    cost : MSAC cost sum(min(e^2, threshold^2)) of the final model over all points.
+    num_hypotheses : hypotheses drawn and scored.
+    status : a ``Status``.
+    threshold : the inlier threshold used (the default if none was given).
+    """
+
+    model: Model
+    inliers: np.ndarray
+    num_inliers: int
+    cost: float
+    num_hypotheses: int
+    status: Status
+    threshold: float
+
+
+def fit(points, shape, *, normals=None, threshold: float | None = None, key=0,
+        options: FitOptions | None = None, **settings) -> FitResult:
+    """Fit one primitive to a point cloud with batched RANSAC and MSAC scoring.
+
+    Parameters
+    ----------
+    points : (N, 3) array-like of finite coordinates.
+    shape : a registered name ("plane", "sphere", "cylinder", "cone", "box") or its class.
+    normals : optional (N, 3) normals (any length, any sign), read by the oriented
+        estimators and the normal gate. When they are needed and not given, they are
+        estimated from the points (``jaxfit.estimate_normals``).
+    threshold : inlier distance, in the points' units. Default: 0.5 % of the diagonal of
+        the cloud's axis-aligned bounding box.
+    key : int seed or JAX PRNG key. ``fit(points, ...)`` equals
+        ``fit_batch([points], ...)[0]``: batch b uses ``fold_in(fold_in(key, 0), b)``.
+    options : a ``FitOptions``; ``settings`` (any of its fields, e.g. ``confidence=0.999``,
+        ``estimator="thesis"``, ``radius_range=(1, 2)``) replace its values.
+
+    Returns
+    -------
+    FitResult
+    """
+    return fit_batch([points], shape, normals=None if normals is None else [normals],
+                     thresholds=threshold, key=key, options=options, **settings)[0]
+
+
+def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
+              skip_failures: bool = False, options: FitOptions | None = None,
+              **settings) -> list[FitResult | None]:
+    """Fit one primitive to each of several clouds, all in the same compiled calls.
+
+    The clouds are padded to one point bucket (and their count to a power of two) and
+    each kernel call scores H hypotheses for every cloud at once; each cloud keeps its own
+    stopping state, exactly as ``fit`` would (``fit`` is this with one cloud).
+
+    Parameters
+    ----------
+    clouds : sequence of (N_i, 3) arrays.
+    normals : None or a sequence of (N_i, 3) arrays (or None entries), as in ``fit``.
+    thresholds : None, one float for all clouds, or one per cloud (None entries take
+        each cloud's default).
+    key : cloud i uses ``fold_in(key, i)``.
+    skip_failures : give None for a cloud on which no model can be fitted instead of
+        raising ``FitError``. Invalid input always raises.
+    options, settings : as in ``fit``.
+
+    Returns
+    -------
+    list of FitResult (or None), one per cloud.
+    """
+    cls = _checks.model_class(shape)
+    checked = FitOptions.build(options, **settings).check(cls)
+    clouds = list(clouds)
+    if not clouds:
+        raise ValueError("clouds is empty: give at least one (N, 3) array")
+    if normals is not None and len(normals) != len(clouds):
+        raise ValueError(f"normals must be one array per cloud ({len(clouds)}), got {len(normals)}")
+    if thresholds is None or isinstance(thresholds, numbers.Real):
+        thresholds = [thresholds] * len(clouds)
+    if len(thresholds) != len(clouds):
+        raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
+    seed = _checks.seed_of(key)
+    if seed is None:  # (an int seed becomes a key only where one is needed)
+        key = _checks.prng_key(key)
+    uses_normals = cls.estimator(checked.estimator).uses_normals
+    prepared = []
+    for i, points in enumerate(clouds):
+        try:
+            prepared.append(prepare(points, cls, None if normals is None else normals[i],
+                                    thresholds[i], uses_normals, key, i, checked.bounds))
+        except ValueError as err:
+            raise type(err)(f"cloud {i}: {err}" if len(clouds) > 1 else str(err)) from None
+    estimate_normals(prepared)
+
+    thetas, drawn, status = search(cls, checked, prepared, key, seed)
+    results = []
+    for i, cloud in enumerate(prepared):
+        try:
+            results.append(result(cls, cloud, thetas[i], drawn[i], status[i]))
+        except _checks.FitError:
+            if not skip_failures:
+                raise
+            results.append(None)
+    return results
+
+
+def result(cls: type[Model], cloud: Cloud, theta, drawn, status) -> FitResult:
+    """The FitResult of hypothesis theta (P,) (normalised frame) on ``cloud``; raises
+    ``FitError`` when no hypothesis was valid or the best has no inliers."""
+    if not np.all(np.isfinite(theta)):
+        raise _checks.FitError(
+            f"no valid {cls.name} hypothesis in {drawn} samples: the points are degenerate "
+            f"for a {cls.name} (coincident, collinear or coplanar)"
+        )
+    unit_threshold = cloud.threshold / cloud.scale
+    theta = np.asarray(theta, np.float64)
+    agree = agreeing(cls, theta, cloud)
+    model = bounded(cls, theta, cloud.unit, unit_threshold, agree)
+    model = model.rescaled(cloud.scale, cloud.center)
+    # Final inliers are judged against the bounded primitive the user gets back.
+    distance = model.distance(cloud.points)
+    inliers = (distance < cloud.threshold) & agree
+    distance = np.where(agree, distance, np.inf)
+    cost = float(np.sum(np.minimum(distance**2, cloud.threshold**2)))
+    return FitResult(model, inliers, int(inliers.sum()), cost, int(drawn), status,
+                     cloud.threshold)
+
+
+def agreeing(cls: type[Model], theta, cloud: Cloud):
+    """(N,) whether each point passes the normal gate of hypothesis theta (normalised
+    frame): the kernel's measure, in float64 NumPy (``Model.residual_slope``)."""
+    if not cloud.gated:
+        return np.ones(len(cloud.points), bool)
+    _, slope = cls.residual_slope(theta, tuple(cloud.unit.T), tuple(cloud.normals.T), np)
+    return np.abs(slope) >= cloud.bounds.normal_cos
+
+
+def bounded(cls: type[Model], theta, unit, unit_threshold, agree=True):
+    """The bounded model from a hypothesis, in the normalised frame (float64), bounded by
+    the points near its surface (and passing the normal gate, ``agree`` (N,))."""
+    residual = cls.theta_residual(theta, (unit[:, 0], unit[:, 1], unit[:, 2]), np)
+    inliers = (np.abs(residual) < unit_threshold) & agree
+    if not inliers.any():
+        raise _checks.FitError(f"the best {cls.name} hypothesis has no inliers")
+    return cls.from_theta(theta, unit, inliers, unit_threshold)

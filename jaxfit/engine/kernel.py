@@ -1,0 +1,134 @@
+"""The jitted entry points the host loop calls: the fused hypothesis kernel and the
+batched refinement, for every cloud of a call at once.
+
+One compiled kernel per (shape, H, point bucket, stages) does sample (``Sampler``) ->
+estimate (the shape's estimator under ``vmap``) -> mask degenerate and out-of-bounds
+hypotheses -> score (``Scorer``) -> the batch's best few; the stages are static
+arguments, so the whole chain is traced into one program and stays fused.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from .._cache import stored_jit
+from ..shapes import Model
+from .backend import jit_tuned
+from .refine import DEFAULT_REFINER, LocalOptimizer
+from .sampling import DEFAULT_SAMPLER, Sampler
+from .scoring import CHUNK, DEFAULT_SCORER, Scorer, live_chunks, score
+
+#: Points drawn per batch for estimators that read the cloud (the box's histogram modes).
+SUPPORT = 256
+#: Upper bound on (clouds x points x hypotheses) in one step of a batched scan (a few MB):
+#: one vmap over hundreds of clouds spills every step out of cache.
+GROUP_ELEMENTS = 1 << 20
+
+
+def estimate_batch(cls: type[Model], samples, support, normals=None,
+                   estimator: str = "thesis"):
+    """vmap'd estimator: samples (H, k, 3), support (M, 3) and, for the oriented
+    estimator, the samples' normals (H, k, 3) -> thetas (H, P), valid (H,)."""
+    est = cls.estimator(estimator)
+    return jax.vmap(est.estimate, in_axes=(0, 0 if est.uses_normals else None, None))(
+        samples, normals if est.uses_normals else None, support)
+
+
+def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold,
+                normals=None, estimator: str = "thesis", top: int | None = None,
+                n_sample=None, bounds=None, gated: bool = False, n_chunks=None,
+                sampler: Sampler = DEFAULT_SAMPLER, scorer: Scorer = DEFAULT_SCORER):
+    """The one kernel: H hypotheses from ``key`` scored on padded points (B, 3) (with
+    their normals (B, 3) for the oriented estimator). Samples are drawn among the first
+    ``n_sample`` points (default all n_valid). Hypotheses outside the user's ``bounds``
+    (``Bounds``) are invalid; ``gated``: scores gate on normals at
+    ``bounds.normal_cos``. ``n_chunks``: as in ``scoring.score``.
+    Returns the best (theta (P,), cost, inlier count) and the number of valid samples;
+    with ``top`` the ``top`` best, best first: thetas (top, P), costs (top,), counts (top,).
+    """
+    est = cls.estimator(estimator)
+    key_sample, key_support = jax.random.split(key)
+    n_sample = n_valid if n_sample is None else n_sample
+    idx, distinct = sampler.draw(key_sample, n_sample, batch_size, est.sample_size)
+    support = points[jax.random.randint(key_support, (SUPPORT,), 0, n_valid)]
+    thetas, valid = estimate_batch(cls, points[idx], support,
+                                   normals[idx] if est.uses_normals else None, estimator)
+    valid &= distinct
+    if bounds is not None:
+        valid &= jax.vmap(lambda theta: bounds.admits(cls, theta))(thetas)
+    gate = (normals, bounds.normal_cos) if gated else None
+    costs = score(cls, thetas, valid, points, n_valid, threshold, counts=False, gate=gate,
+                  n_chunks=n_chunks, scorer=scorer)
+    _, best = jax.lax.top_k(-costs, 1 if top is None else top)
+    _, counts = score(cls, thetas[best], valid[best], points, n_valid, threshold, gate=gate,
+                      n_chunks=n_chunks, scorer=scorer)
+    if top is None:
+        return thetas[best[0]], costs[best[0]], counts[0], jnp.sum(valid)
+    return thetas[best], costs[best], counts, jnp.sum(valid)
+
+
+_STAGES = ("sampler", "scorer")
+batch_best = jit_tuned(_batch_best, static_argnames=("cls", "batch_size", "estimator", "gated",
+                                                     *_STAGES))
+
+
+def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sample,
+                     cloud_keys, threshold, bounds, batch, gated=False,
+                     sampler: Sampler = DEFAULT_SAMPLER, scorer: Scorer = DEFAULT_SCORER):
+    """``batch_best`` for every cloud: points (C, B, 3), normals (C, B, 3) or None,
+    n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), bounds (``Bounds``
+    with a leading (C,) axis); batch b of cloud c uses fold_in(cloud_keys[c], b).
+    Returns each cloud's ``cls.lo_starts`` best: thetas (C, S, P), costs (C, S),
+    counts (C, S), and its valid samples (C,)."""
+
+    n_chunks = live_chunks(jnp.max(n_valid))  # one loop bound for all clouds
+
+    def one(args):
+        p, nrm, n, m, k, t, b = args
+        return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
+                           estimator, cls.lo_starts, m, b, gated, n_chunks, sampler, scorer)
+
+    return jax.lax.map(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,
+                             bounds),
+                       batch_size=group(points.shape[0], CHUNK * batch_size))
+
+
+batch_best_many = jit_tuned(_batch_best_many,
+                            static_argnames=("cls", "batch_size", "estimator", "gated",
+                                             *_STAGES))
+
+
+def group(clouds: int, elements: int) -> int:
+    """Clouds processed side by side (vmap) inside the map over clouds: as many as keep
+    one step's (clouds, elements) block within GROUP_ELEMENTS, a divisor of clouds."""
+    size = max(1, min(clouds, GROUP_ELEMENTS // elements))
+    while clouds % size:
+        size -= 1
+    return size
+
+
+def _refine_many(cls, thetas, points, n_valid, threshold, bounds, normals=None, rows=None,
+                 refiner: LocalOptimizer = DEFAULT_REFINER, scorer: Scorer = DEFAULT_SCORER):
+    """``refiner.refine`` for each cloud's ``cls.lo_starts`` hypotheses thetas (C, S, P),
+    gated on normals (C, B, 3) if given; returns the best refined theta (C, P), its cost
+    (C,) and inlier count (C,) per cloud."""
+
+    n_chunks = live_chunks(jnp.max(n_valid))  # one loop bound for all clouds
+
+    def refine(theta, p, n, t, b, nrm):
+        return refiner.refine(cls, theta, p, n, t, b, nrm, n_chunks, rows, scorer)
+
+    starts = jax.vmap(refine, in_axes=(0, None, None, None, None, None))
+    # A while_loop under vmap runs until its slowest member stops: small groups keep
+    # one slow cloud from holding all the others for max_rounds.
+    theta, cost, count = jax.lax.map(lambda a: starts(*a),
+                                     (thetas, points, n_valid, threshold, bounds, normals),
+                                     batch_size=group(points.shape[0], points.shape[1] * 64))
+    best = jnp.argmin(cost, axis=1)[:, None]
+    pick = lambda a: jnp.take_along_axis(a, best.reshape(best.shape + (1,) * (a.ndim - 2)),  # noqa: E731
+                                          axis=1)[:, 0]
+    return pick(theta), pick(cost), pick(count)
+
+
+refine_many = stored_jit(_refine_many, ("cls", "rows", "refiner", "scorer"))

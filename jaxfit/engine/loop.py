@@ -1,0 +1,127 @@
+"""The host loop: batches of hypotheses for all clouds of a call in lockstep, each cloud
+with its own best model and stopping state (optimistix's one loop for every solver:
+init, then step -> refine -> terminate per batch).
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from ..shapes import Model
+from .backend import placer, slots
+from .cloud import Cloud, bucket_size, padded
+from .kernel import batch_best_many, refine_many
+from .keys import cloud_keys, seed_cloud_keys
+from .options import Bounds, FitOptions
+from .refine import lo_rows
+from .stopping import Status
+
+
+def subset_rows(mask: np.ndarray, multiple: int = 1):
+    """The rows a batched call runs on for the slots where mask (S,) holds: None (all S
+    slots) or those slots, padded by repeating the first, to the smallest of S / 16,
+    S / 256, ... (a multiple of ``multiple``, the device count) that holds them. A few
+    hard clouds among many easy ones then do not keep every cloud's kernel and
+    refinement running, and at most a few more sizes compile."""
+    live = np.flatnonzero(mask)
+    size = len(mask)
+    while (size >> 4) >= max(len(live), 1) and (size >> 4) % multiple == 0:
+        size >>= 4
+    if size == len(mask):
+        return None
+    return np.concatenate([live, np.full(size - len(live), live[0])])
+
+
+def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed):
+    """Run the checked ``options`` on the prepared clouds; ``key`` is the call's JAX key,
+    or None with the int ``seed`` it stands for.
+
+    Returns the best theta (C, P) per cloud (NaN where none was valid), hypotheses drawn
+    (C,) and the Status (C,) of each cloud.
+    """
+    est = cls.estimator(options.estimator)
+    count = len(clouds)
+    devices = jax.local_devices()
+    rows_count = slots(count, len(devices))
+    n_max = max(c.points.shape[0] for c in clouds)
+    size = bucket_size(n_max)
+    dtype = jax.dtypes.canonicalize_dtype(np.float64)  # float32 unless x64 is on
+    order = list(range(count)) + [0] * (rows_count - count)  # padding slots repeat cloud 0
+    put = placer(devices)
+    built = [cloud.kernel_rows() for cloud in clouds]  # padding slots reuse cloud 0's
+    rows = [built[i] for i in order]
+    gated = clouds[0].gated  # one normal_angle for all clouds of a call
+    host = {  # per-slot arrays, clouds first
+        "points": np.stack([padded(unit, dtype, size) for unit, _, _ in rows]),
+        "normals": (np.stack([padded(nrm, dtype, size) for _, nrm, _ in rows])
+                    if est.uses_normals or gated else None),
+        "n": np.asarray([clouds[i].points.shape[0] for i in order], np.int32),
+        "n_sample": np.asarray([m for _, _, m in rows], np.int32),
+        "keys": (cloud_keys(key, rows_count) if seed is None
+                 else seed_cloud_keys(seed, jax.config.jax_default_prng_impl, rows_count)),
+        "threshold": np.asarray([clouds[i].threshold / clouds[i].scale for i in order], dtype),
+        "bounds": Bounds.stack([clouds[i].unit_bounds() for i in order], dtype),
+    }
+    every = jax.tree.map(put, host)
+
+    def on(slots_of):
+        """The per-slot arrays for the rows ``slots_of`` (None: every slot), placed."""
+        if slots_of is None:
+            return every
+        return jax.tree.map(lambda a: put(a[slots_of]), host)
+
+    best_theta = np.full((rows_count, cls.num_params), np.nan)
+    best_cost, best_raw = np.full(rows_count, np.inf), np.full(rows_count, np.inf)
+    best_count = np.zeros(rows_count)
+    last_improvement = np.zeros(rows_count, int)
+    drawn = np.zeros(rows_count, int)
+    status = np.array([Status.MAX_HYPOTHESES] * rows_count, dtype=object)
+    active = np.arange(rows_count) < count
+    batch, batch_size = 0, options.batch_size
+    while active.any() and batch * batch_size < options.max_hypotheses:
+        searching = subset_rows(active, len(devices))
+        a = on(searching)
+        theta, cost, found, _ = batch_best_many(
+            cls, batch_size, est.name, a["points"], a["normals"], a["n"], a["n_sample"],
+            a["keys"], a["threshold"], a["bounds"], batch, gated, options.sampler,
+            options.scorer)
+        where = np.arange(rows_count) if searching is None else searching  # slot of each row
+        batch += 1
+        drawn[active] = batch * batch_size
+        # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
+        # so a rough but right one is not hidden behind a polished wrong one).
+        raw = np.full(rows_count, np.inf)
+        raw[where] = np.asarray(cost, np.float64)[:, 0]  # (sliced on the host: see below)
+        improved = active & (raw < best_raw)
+        best_raw = np.where(improved, raw, best_raw)
+        if options.refine and improved.any():
+            polishing = subset_rows(improved, len(devices))
+            if polishing is not None:  # (else every slot: the kernel ran on all of them)
+                row = np.full(rows_count, -1)
+                row[where[::-1]] = np.arange(len(where))[::-1]  # first row of each slot
+                theta, a = put(np.asarray(theta)[row[polishing]]), on(polishing)
+            theta, cost, found = refine_many(
+                cls, theta, a["points"], a["n"], a["threshold"], a["bounds"],
+                a["normals"] if gated else None, lo_rows(n_max), options.refiner,
+                options.scorer)
+            where = np.arange(rows_count) if polishing is None else polishing
+        else:
+            # (indexing on the host: a JAX slice per array cost ~0.2 ms each)
+            theta, cost, found = (np.asarray(x)[:, 0] for x in (theta, cost, found))
+        full = (np.full((rows_count, cls.num_params), np.nan), np.full(rows_count, np.inf),
+                np.zeros(rows_count))
+        for out, value in zip(full, (theta, cost, found), strict=True):
+            out[where] = np.asarray(value)
+        theta, cost, found = full
+        better = improved & (cost < best_cost)
+        best_theta[better], best_cost[better] = theta[better], cost[better]
+        best_count[better] = found[better]
+        last_improvement[better] = batch * batch_size
+        for i in np.flatnonzero(active):
+            stop = options.stopping.status(best_count[i], clouds[i].points.shape[0], drawn[i],
+                                           drawn[i] - last_improvement[i], est.sample_size,
+                                           options)
+            if stop is not None:
+                status[i], active[i] = stop, False
+    return best_theta[:count], drawn[:count], status[:count]
