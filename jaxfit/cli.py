@@ -9,6 +9,12 @@ import time
 
 import numpy as np
 
+from .evaluation import evaluate as evaluation
+from .evaluation import scenarios
+from .evaluation.synthetic import COMPOSITES
+from .shapes import REGISTRY
+from .shapes._base import ESTIMATORS
+
 
 def _print_model(model, title):
     params = model.to_dict()
@@ -73,11 +79,11 @@ def _parser():
 
     def common(p, default_shape=None, required=True):
         p.add_argument("--shape", default=default_shape, required=required,
-                       choices=["plane", "sphere", "cylinder", "cone", "box"])
+                       choices=list(REGISTRY))
         p.add_argument("--threshold", type=float, default=None,
                        help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
         p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-        p.add_argument("--estimator", choices=["thesis", "oriented"], default=None,
+        p.add_argument("--estimator", choices=ESTIMATORS, default=None,
                        help="minimal-sample estimator (default: the shape's best)")
         p.add_argument("--json", metavar="OUT", help="write the result as JSON")
         p.add_argument("--mesh", metavar="OUT", help="write the primitive's mesh (.ply, .stl, ...)")
@@ -93,7 +99,7 @@ def _parser():
         "demo", help="decompose a built-in object (no input needed); with --shape, fit one "
                      "primitive among outliers instead")
     demo.add_argument("--object", default="mallet",
-                      choices=["mallet", "lollipop", "hammer", "lamp"])
+                      choices=COMPOSITES)
     demo.add_argument("--out", default="jaxfit-demo", help="output folder (./jaxfit-demo)")
     demo.add_argument("--gain", type=float, default=0.96)
     common(demo, default_shape=None, required=False)
@@ -113,17 +119,17 @@ def _parser():
     decompose.set_defaults(run=_cmd_decompose)
     evaluate = sub.add_parser(
         "evaluate", help="the thesis's RN/RNIM/SN/SNIM evaluation: CSV, tables and plots")
-    evaluate.add_argument("--shape", nargs="+", default=["sphere", "cylinder", "cone", "box"],
-                          choices=["plane", "sphere", "cylinder", "cone", "box"])
-    evaluate.add_argument("--scenario", nargs="+", default=["RN", "RNIM", "SN", "SNIM"],
-                          choices=["RN", "RNIM", "SN", "SNIM"])
+    evaluate.add_argument("--shape", nargs="+", default=list(evaluation.SHAPES),
+                          choices=list(REGISTRY))
+    evaluate.add_argument("--scenario", nargs="+", default=list(scenarios.SCENARIOS),
+                          choices=scenarios.SCENARIOS)
     evaluate.add_argument("--repeats", type=int, default=10, help="clouds per level (10)")
     evaluate.add_argument("--count", type=int, default=2000, help="points per cloud (2000)")
     evaluate.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
     evaluate.add_argument("--out", default="evaluation", help="output folder (./evaluation)")
-    evaluate.add_argument("--estimator", choices=["thesis", "oriented"], default=None,
+    evaluate.add_argument("--estimator", choices=ESTIMATORS, default=None,
                           help="minimal-sample estimator (default: each shape's best)")
-    evaluate.add_argument("--normals", choices=["estimated", "true"], default="estimated",
+    evaluate.add_argument("--normals", choices=evaluation.NORMALS, default="estimated",
                           help="normals the oriented estimators read (default: estimated)")
     evaluate.set_defaults(run=_cmd_evaluate)
     return parser
@@ -161,11 +167,9 @@ def _demo_decomposition(args):
 
 
 def _cmd_evaluate(args):
-    from .evaluation import evaluate
-
-    rows = evaluate.run(args.shape, args.scenario, repeats=args.repeats, count=args.count,
+    rows = evaluation.run(args.shape, args.scenario, repeats=args.repeats, count=args.count,
                         seed=args.seed, normals=args.normals, estimator=args.estimator)
-    out = evaluate.write(rows, args.out)
+    out = evaluation.write(rows, args.out)
     print(f"{len(rows)} fits; wrote {out / 'runs.csv'}, {out / 'summary.md'} and plots")
 
 

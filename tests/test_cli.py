@@ -55,3 +55,24 @@ def test_errors_are_messages_not_tracebacks(tmp_path, capsys):
     np.savetxt(path, np.random.default_rng(0).normal(size=(2, 3)))
     assert main(["fit", str(path), "--shape", "sphere"]) == 2
     assert "too few points" in capsys.readouterr().err
+
+
+def test_shape_and_estimator_choices_come_from_the_registry(monkeypatch, capsys):
+    import pytest
+
+    from jaxfit.cli import _parser
+    from jaxfit.shapes import REGISTRY, Sphere
+    from jaxfit.shapes._base import ESTIMATORS
+
+    for name in REGISTRY:
+        assert _parser().parse_args(["fit", "x.npy", "--shape", name]).shape == name
+    for name in ESTIMATORS:
+        args = _parser().parse_args(["fit", "x.npy", "--shape", "cone", "--estimator", name])
+        assert args.estimator == name
+    with pytest.raises(SystemExit):
+        _parser().parse_args(["fit", "x.npy", "--shape", "torus"])
+    assert "invalid choice: 'torus'" in capsys.readouterr().err
+    # A newly registered primitive is a choice at once, in fit and in evaluate.
+    monkeypatch.setitem(REGISTRY, "torus", Sphere)
+    assert _parser().parse_args(["fit", "x.npy", "--shape", "torus"]).shape == "torus"
+    assert _parser().parse_args(["evaluate", "--shape", "torus"]).shape == ["torus"]

@@ -134,3 +134,21 @@ def test_hull_depth_matches_numpy_for_any_padding():
         exact = -np.max(cloud @ faces[:, :3].T + faces[:, 3], axis=1)
         np.testing.assert_allclose(hull_depth(cloud, faces), exact, rtol=0, atol=2e-5 * 3)
         assert np.min(exact) > -1e-9  # (every point is inside its own hull)
+
+
+def test_parts_bounded_along_an_axis_grow_along_their_surface():
+    # Reassignment re-bounds the primitives whose bounds are an interval along the axis
+    # (Model.axial_bounds) on the whole cloud: a post cut short by a box cut grows back.
+    from jaxfit.decomposition.psda import _grown
+    from jaxfit.shapes import REGISTRY
+
+    assert {n for n, c in REGISTRY.items() if c.axial_bounds} == {"cylinder", "cone"}
+    up = np.array([0.0, 0.0, 1.0])
+    post = Cylinder(np.zeros(3), up, np.float64(0.1), np.float64(2.0))
+    points, _ = post.sample(4000, np.random.default_rng(0))
+    short = Cylinder(np.array([0.0, 0.0, -0.5]), up, np.float64(0.1), np.float64(1.0))
+    grown = _grown(short, points, 0.01)
+    assert grown.height == pytest.approx(2.0, rel=0.01)
+    np.testing.assert_allclose(grown.center, 0.0, atol=0.01)
+    ball = Sphere(np.zeros(3), np.float64(0.1))
+    assert _grown(ball, points, 0.01) is ball

@@ -44,3 +44,12 @@ def test_cli(tmp_path, capsys):
     assert main(argv) == 0
     assert "6 fits" in capsys.readouterr().out
     assert (tmp_path / "plane.png").exists()
+
+
+def test_shown_measures_come_from_the_shapes():
+    from jaxfit.shapes import REGISTRY
+
+    assert set(evaluate.MEASURES) == set(REGISTRY)
+    for name, cls in REGISTRY.items():
+        assert evaluate.MEASURES[name] == cls.shown_measures
+    assert evaluate.MEASURES["sphere"] == ("center_rel", "radius_rel", "mee")

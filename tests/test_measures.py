@@ -155,3 +155,33 @@ def test_measures_of_a_real_fit_on_a_scenario():
     assert out["center_rel"] < 0.02 and out["radius_rel"] < 0.02
     assert out["mee"] < result.threshold
     assert out["precision"] > 0.95 and out["recall"] > 0.95
+
+
+# ----- the per-shape measures (Model.error_measures, shown_measures) ------------------------
+
+
+@pytest.mark.parametrize("shape", sorted(jaxfit.shapes.REGISTRY))
+def test_a_model_has_no_error_against_itself_and_shows_its_own_keys(shape):
+    scn = scenarios.make(shape, "RN", 0.3, count=300, seed=1)
+    out = errors(scn.model, scn.model, points=scn.points, fitted_inliers=scn.inliers,
+                 true_inliers=scn.inliers)
+    measured = {k: v for k, v in out.items() if k not in ("inlier_count", "precision", "recall")}
+    assert max(measured.values()) < 1e-6, measured  # axis angles of equal axes: ~1e-7 deg
+    assert out["precision"] == out["recall"] == 1.0
+    assert set(type(scn.model).shown_measures) <= set(out)
+    assert out == {**scn.model.error_measures(scn.model), **measures.inlier_measures(
+        scn.model, scn.points, scn.inliers), **measures.precision_recall(scn.inliers,
+                                                                           scn.inliers)}
+
+
+@pytest.mark.parametrize("shape", sorted(jaxfit.shapes.REGISTRY))
+def test_a_moved_model_has_a_center_or_offset_error(shape):
+    model = scenarios.make(shape, "RN", 0.3, count=300, seed=1).model
+    moved = model.rescaled(1.0, np.array([0.0, 0.0, 0.1]))
+    out = errors(model, moved)
+    # A shift of 0.1 shows as a position error of 0.1 (along a plane's normal: |n_z| 0.1).
+    position = {k: v for k, v in out.items()
+                if k in ("center_error", "apex_error", "offset_error")}
+    assert position, out
+    expected = 0.1 * abs(model.normal[2]) if shape == "plane" else 0.1
+    assert all(v == pytest.approx(expected) for v in position.values())

@@ -221,3 +221,114 @@ def test_names_are_case_insensitive_and_levels_listed():
     scn = make("Sphere", "rnim", 0.2, count=100)
     assert (scn.shape, scn.scenario) == ("sphere", "RNIM")
     assert scenarios.levels("snim") == SN_LEVELS and scenarios.levels("RN") == RN_LEVELS
+
+
+# ----- the shape facts the scenarios read (Model.area, size, bounding_box, random, cut) -----
+
+
+def test_removed_share_table_is_the_shapes_attribute():
+    from jaxfit.shapes import REGISTRY
+
+    assert scenarios.REMOVED_SHARE == {n: c.removed_share for n, c in REGISTRY.items()}
+    assert scenarios.REMOVED_SHARE["box"] == 0.1 and scenarios.REMOVED_SHARE["sphere"] == 0.5
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_random_cut_deletes_the_removed_share_of_the_area(shape):
+    scn = make(shape, "RNIM", 0.2, seed=2)
+    assert surface_share_removed(scn) == pytest.approx(scn.model.removed_share, abs=0.01)
+    # The cut is the shape's own, drawn from the scenario's cut stream.
+    cut = scn.model.random_cut(np.random.default_rng([2, 1]))
+    np.testing.assert_array_equal(cut.origin, scn.cut.origin)
+    np.testing.assert_array_equal(cut.direction, scn.cut.direction)
+
+
+def _sides_area(model, mesh):
+    """Area of the mesh's faces whose outward normal is not along the axis (the side of a
+    cylinder or a cone, without caps or base)."""
+    along = np.abs(mesh.face_normals @ model.axis) > 0.999
+    return float(mesh.area_faces[~along].sum())
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_area_is_the_area_of_the_sampled_surface(shape):
+    model = make(shape, "RN", 0.1, seed=4).model
+    if shape == "sphere":
+        mesh_area = model.to_mesh(subdivisions=6).area
+    elif shape in ("cylinder", "cone"):
+        mesh_area = _sides_area(model, model.to_mesh(sections=2048))
+    elif shape == "plane":
+        mesh_area = model.to_mesh(sections=2048).area
+    else:
+        mesh_area = model.to_mesh().area
+    assert model.area() == pytest.approx(mesh_area, rel=1e-4)
+
+
+def test_size_of_a_plane_is_its_patch_radius():
+    plane = make("plane", "SN", 0.1, seed=9).model
+    assert plane.size() == scenarios.shape_size(plane) == plane.radius
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_bounding_box_holds_the_sampled_surface_and_touches_it(shape):
+    model = make(shape, "RN", 0.1, seed=3).model
+    lo, hi = model.bounding_box()
+    points, _ = model.sample(20_000, np.random.default_rng(0))
+    assert np.all(points >= lo - 1e-12) and np.all(points <= hi + 1e-12)
+    np.testing.assert_allclose(points.min(axis=0), lo, atol=0.02 * np.max(hi - lo))
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_random_places_the_model_in_the_given_frame(shape):
+    from jaxfit.evaluation.synthetic import random_rotation
+    from jaxfit.shapes import REGISTRY
+
+    cls = REGISTRY[shape]
+    rotation, center = random_rotation(np.random.default_rng(1)), np.array([0.3, -0.2, 0.5])
+    model = cls.random(rotation, center, 0.9, np.random.default_rng(2))
+    again = cls.random(rotation, center, 0.9, np.random.default_rng(2))
+    assert model.to_dict() == again.to_dict()  # all randomness from rng
+    lo, hi = model.bounding_box()
+    assert np.all(lo <= center) and np.all(center <= hi)
+    assert 0.3 < model.size() < 1.5
+    # The sign rules hold: canonicalising the parameters changes nothing.
+    assert type(model).from_dict(model.to_dict()).to_dict() == model.to_dict()
+    if shape in ("cylinder", "cone", "plane"):
+        direction = model.normal if shape == "plane" else model.axis
+        assert abs(abs(direction @ rotation[:, 2]) - 1.0) < 1e-12
+
+
+def test_box_cut_names_a_face_and_on_face_picks_its_points():
+    box = make("box", "RN", 0.1, seed=1).model
+    cut = box.random_cut(np.random.default_rng(0))
+    axis, sign = cut.face
+    for other_axis in range(3):
+        for other_sign in (-1, 1):
+            points, normals = box.sample_face(other_axis, other_sign, 200,
+                                              np.random.default_rng(5))
+            assert np.max(box.distance(points)) < 1e-12
+            np.testing.assert_array_equal(
+                normals, np.tile(other_sign * box.rotation[:, other_axis], (200, 1)))
+            expected = (other_axis, other_sign) == (axis, sign)
+            assert np.all(box.on_face(points, (axis, sign)) == expected)
+
+
+def test_scene_surfaces_of_a_box_are_its_five_upper_faces():
+    from jaxfit.shapes import Plane
+
+    box = make("box", "RN", 0.1, seed=2, axis_aligned=True).model
+    surfaces = box.scene_surfaces()
+    assert len(surfaces) == 5 and all(isinstance(m, Plane) for m, _, _ in surfaces)
+    bottom = box.extents[0] * box.extents[1]
+    assert sum(area for _, area, _ in surfaces) == pytest.approx(box.area() - bottom)
+    for face, area, sample in surfaces:
+        axis = int(np.argmax(np.abs(box.rotation.T @ face.normal)))
+        assert area == pytest.approx(np.prod(box.extents) / box.extents[axis])
+        points, normals = sample(300, np.random.default_rng(0))
+        assert np.max(np.abs(face.residual(points))) < 1e-12
+        assert np.max(box.distance(points)) < 1e-12
+        np.testing.assert_allclose(np.abs(normals @ face.normal), 1.0)
+        assert np.all(points[:, 2] > box.center[2] - 0.5 * box.extents[2] + 1e-9)
+    sphere = make("sphere", "RN", 0.1).model
+    ((model, area, sample),) = sphere.scene_surfaces()
+    assert model is sphere and area == sphere.area() and sample == sphere.sample

@@ -91,7 +91,7 @@ import numpy as np
 
 from .. import _checks
 from ..engine import fit_batch
-from ..shapes import Box, Cone, Cylinder, Model
+from ..shapes import Box, Model
 from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import hull_depth
 
@@ -380,11 +380,12 @@ def _best_fitted(part: Part) -> Model:
 
 
 def _grown(model: Model, points, threshold) -> Model:
-    """A cylinder or cone re-bounded on the inliers of its unbounded surface in the
-    whole cloud (other primitives unchanged), so it reaches the points of it that a box
-    cut gave to a neighbour. The bounds are the shape's own (``from_theta``): the main
-    run of inliers along the axis, so a gap of a few thresholds stops the growth."""
-    if not isinstance(model, Cylinder | Cone):
+    """A primitive bounded along its axis (``Model.axial_bounds``: cylinder, cone)
+    re-bounded on the inliers of its unbounded surface in the whole cloud (others
+    unchanged), so it reaches the points of it that a box cut gave to a neighbour. The
+    bounds are the shape's own (``from_theta``): the main run of inliers along the axis,
+    so a gap of a few thresholds stops the growth."""
+    if not model.axial_bounds:
         return model
     inliers = np.abs(model.residual(points)) < threshold
     if not inliers.any():

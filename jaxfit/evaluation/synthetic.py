@@ -10,6 +10,7 @@ import numpy as np
 from .. import _checks
 from ..shapes import Box, Cone, Cylinder, Model, Plane, Sphere
 from ..shapes import _geometry as g
+from ..shapes.box import canonical_rotation
 
 
 def random_rotation(rng) -> np.ndarray:
@@ -24,29 +25,17 @@ def random_rotation(rng) -> np.ndarray:
 def random_model(shape, rng, *, axis_aligned: bool = False) -> Model:
     """A primitive of unit-order size in a random pose, following the models' sign rules.
 
-    With s ~ U(0.7, 1.3): sphere radius s; cylinder radius s/2 and height 2s; cone height
-    2s and half-angle U(20, 40) degrees; box sides s * U(0.6, 1.4) each; plane disk radius
-    s. The centre is uniform in [-1, 1]^3; the rotation is random unless ``axis_aligned``.
+    The rotation is random unless ``axis_aligned``, the centre uniform in [-1, 1]^3 and
+    the scale s ~ U(0.7, 1.3), in that order from ``rng``; the primitive's ``random``
+    turns them into a model (sphere radius s; cylinder radius s/2 and height 2s; cone
+    height 2s and half-angle U(20, 40) degrees; box sides s * U(0.6, 1.4) each; plane
+    disk radius s).
     """
     cls = _checks.model_class(shape)
     rot = np.eye(3) if axis_aligned else random_rotation(rng)
     center = rng.uniform(-1.0, 1.0, 3)
     size = rng.uniform(0.7, 1.3)
-    if cls is Sphere:
-        return Sphere(center, np.float64(size))
-    if cls is Box:
-        first = g.sign_canonical(rot[:, :2].T)  # the box's sign rule; det stays +1
-        rot = np.stack([first[0], first[1], np.cross(first[0], first[1])], axis=1)
-        return Box(center, rot, size * rng.uniform(0.6, 1.4, 3))
-    axis = rot[:, 2]
-    if cls is Cone:  # the cone's axis points into it, so it has no sign rule to apply
-        half_angle = rng.uniform(np.radians(20.0), np.radians(40.0))
-        height = 2.0 * size
-        return Cone(center - 0.5 * height * axis, axis, np.float64(half_angle), np.float64(height))
-    axis = g.sign_canonical(axis)
-    if cls is Cylinder:
-        return Cylinder(center, axis, np.float64(0.5 * size), np.float64(2.0 * size))
-    return Plane(axis, np.float64(-axis @ center), center, np.float64(size))
+    return cls.random(rot, center, size, rng)
 
 
 def noisy_cloud(model: Model, *, count: int = 2000, outlier_ratio: float = 0.5,
@@ -157,28 +146,13 @@ def _scene_object(kind: str, rng):
         ext = np.array([*rng.uniform(1.4, 2.2, 2) * r, rng.uniform(1.0, 2.5) * r])
         turn = rng.uniform(0.0, 0.5 * np.pi)
         c, s = np.cos(turn), np.sin(turn)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        first = g.sign_canonical(rot[:, :2].T)  # the box's sign rule; det stays +1
-        rot = np.stack([first[0], first[1], np.cross(first[0], first[1])], axis=1)
+        rot = canonical_rotation(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
         return Box(np.array([0.0, 0.0, 0.5 * ext[2]]), rot, ext), 0.5 * np.hypot(*ext[:2])
     raise ValueError(f"unknown scene object {kind!r}; expected one of {SCENE_OBJECTS}")
 
 
 def _moved(model: Model, shift) -> Model:
     return model.rescaled(1.0, np.asarray(shift, np.float64))
-
-
-def _box_faces(box: Box):
-    """The five faces of a box resting on the floor (all but the bottom) as Planes."""
-    rot, ext, center = box._array("rotation"), box._array("extents"), box._array("center")
-    faces = []
-    for axis, sign in [(0, 1), (0, -1), (1, 1), (1, -1), (2, 1)]:
-        normal = g.sign_canonical(sign * rot[:, axis])
-        middle = center + sign * 0.5 * ext[axis] * rot[:, axis]
-        others = np.delete(ext, axis)
-        faces.append(Plane(normal, np.float64(-normal @ middle), middle,
-                           np.float64(0.5 * np.hypot(*others))))
-    return faces
 
 
 def _place(footprints, rng, floor: float, gap: float, tries: int = 1000):
@@ -234,17 +208,17 @@ def scene(seed: int = 0, *, objects=None, count: int = 4000, noise: float = 0.00
     centres = _place(footprints, rng, floor=floor, gap=0.05)
     solids = [_moved(m, [*xy, 0.0]) for m, xy in zip(solids, centres, strict=True)]
     up = np.array([0.0, 0.0, 1.0])
-    models = [Plane(up, np.float64(0.0), np.zeros(3), np.float64(floor))]
+    surfaces = Plane(up, np.float64(0.0), np.zeros(3), np.float64(floor)).scene_surfaces()
     owner = [None]  # the solid hiding points of each model, for the visibility test
     for solid in solids:
-        surfaces = _box_faces(solid) if isinstance(solid, Box) else [solid]
-        models += surfaces
-        owner += [solid] * len(surfaces)
-    areas = np.array([_visible_area(m, s) for m, s in zip(models, owner, strict=True)])
+        surfaces += solid.scene_surfaces()
+        owner += [solid] * (len(surfaces) - len(owner))
+    models, areas, samplers = (list(column) for column in zip(*surfaces, strict=True))
+    areas = np.array(areas)
     counts = rng.multinomial(count, areas / areas.sum())
     points, normals, labels = [], [], []
-    for i, (model, k) in enumerate(zip(models, counts, strict=True)):
-        p, n = _sample_surface(model, owner[i], int(k), rng)
+    for i, (sample, k) in enumerate(zip(samplers, counts, strict=True)):
+        p, n = sample(int(k), rng)
         points.append(p)
         normals.append(n)
         labels.append(np.full(len(p), i))
@@ -257,33 +231,3 @@ def scene(seed: int = 0, *, objects=None, count: int = 4000, noise: float = 0.00
     points = points + normals * rng.uniform(-noise, noise, (len(points), 1))
     keep = ~hidden
     return points[keep], models, labels[keep]
-
-
-def _visible_area(model: Model, solid) -> float:
-    """Area of one scene surface (floor disk, sphere, side, face) before hiding."""
-    if isinstance(model, Plane) and solid is None:
-        return np.pi * float(model.radius) ** 2
-    if isinstance(model, Plane):  # a box face
-        ext = solid._array("extents")
-        rot = solid._array("rotation")
-        axis = int(np.argmax(np.abs(rot.T @ model._array("normal"))))
-        return float(np.prod(np.delete(ext, axis)))
-    if isinstance(model, Sphere):
-        return 4.0 * np.pi * float(model.radius) ** 2
-    if isinstance(model, Cylinder):
-        return 2.0 * np.pi * float(model.radius) * float(model.height)
-    slant = float(model.height) / np.cos(float(model.half_angle))
-    return np.pi * float(model.base_radius) * slant
-
-
-def _sample_surface(model: Model, solid, count: int, rng):
-    """count points and normals on one scene surface (a box face: on that face only)."""
-    if not isinstance(model, Plane) or solid is None:
-        return model.sample(count, rng)
-    rot, ext = solid._array("rotation"), solid._array("extents")
-    axis = int(np.argmax(np.abs(rot.T @ model._array("normal"))))
-    local = rng.uniform(-0.5, 0.5, (count, 3)) * ext
-    side = np.sign(rot[:, axis] @ (model._array("center") - solid._array("center")))
-    local[:, axis] = side * 0.5 * ext[axis]
-    normal = side * rot[:, axis]
-    return local @ rot.T + solid._array("center"), np.tile(normal, (count, 1))

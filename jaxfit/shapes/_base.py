@@ -30,6 +30,26 @@ needs as class-level functions:
 
 ``theta`` is the flat hypothesis vector of length ``num_params``; it is an engine detail,
 documented per primitive, while the dataclass fields are the public parameters.
+
+The rest of jaxfit reads what it needs to know about a primitive from the class too, so a
+new primitive is its own file plus its import in ``jaxfit/shapes/__init__.py``:
+
+- ``sample(count, rng)``, ``area()``: points uniform on the *sampled surface* (documented
+  per primitive: a cylinder's or cone's side without caps, a plane's disk patch) and its
+  area. ``scene_surfaces()``: what ``synthetic.scene`` samples of it standing on a floor.
+- ``size()``: the characteristic length noise and thresholds are relative to;
+  ``bounding_box()``: exact axis-aligned bounds of the closed, bounded model.
+- ``random(rotation, center, size, rng)``: a random model in a given pose and scale
+  (``synthetic.random_model``); ``random_cut(rng)``: the ``Cut`` an incomplete scenario
+  deletes, ``removed_share`` of the sampled area (``scenarios``).
+- ``error_measures(fitted)``: the thesis's errors of a fit against this true model, and
+  ``shown_measures``, the ones the evaluation's tables show (``measures``, ``evaluate``).
+- ``axial_bounds``: whether the bounds are an interval along the axis (the PSDA re-bounds
+  such primitives on the whole cloud).
+
+The fields hold one primitive: ``center`` is (3,), not (..., 3). ``to_dict``,
+``from_dict`` and ``rescaled`` also work on fields with leading batch axes; the geometric
+methods (``theta``, ``residual``, ``distance``, ``sample``, ``to_mesh``, ...) do not.
 """
 
 from __future__ import annotations
@@ -194,6 +214,61 @@ class Model:
         here, not at module level: it costs half a second of every process's start.)"""
         raise NotImplementedError
 
+    def sample(self, count: int, rng):
+        """(count, 3) points uniform on the sampled surface and their unit outward normals
+        (count, 3), from the NumPy generator ``rng``."""
+        raise NotImplementedError
+
+    # ----- facts for scenes, scenarios and the evaluation (see the module docstring) -----
+    #: Share of the sampled surface's area that ``random_cut`` deletes.
+    removed_share: ClassVar[float]
+    #: Keys of ``error_measures`` the evaluation's tables and plots show (the CSV has all).
+    shown_measures: ClassVar[tuple[str, ...]]
+    #: Whether the bounded surface is the unbounded one cut to an interval along the axis
+    #: (cylinder, cone): a box cut of a part can truncate it, so the PSDA re-bounds it on
+    #: the inliers of its unbounded surface in the whole cloud (``from_theta``).
+    axial_bounds: ClassVar[bool] = False
+
+    @classmethod
+    def random(cls, rotation, center, size: float, rng) -> Model:
+        """A model in the frame ``rotation`` (3, 3) (its axis or normal, where it has one,
+        along the third column) at ``center`` (3,), of scale ``size``; its remaining
+        proportions are drawn from ``rng``. It follows the sign rules."""
+        raise NotImplementedError
+
+    def size(self) -> float:
+        """The characteristic length surface noise and thresholds are relative to."""
+        raise NotImplementedError
+
+    def area(self) -> float:
+        """Area of the sampled surface (the one ``sample`` draws on)."""
+        raise NotImplementedError
+
+    def bounding_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """Exact axis-aligned bounds (lo (3,), hi (3,)) of the closed, bounded model."""
+        raise NotImplementedError
+
+    def random_cut(self, rng) -> Cut:
+        """The part of the sampled surface an incomplete scenario deletes: a ``Cut``
+        covering ``removed_share`` of its area, drawn from ``rng``."""
+        raise NotImplementedError
+
+    def on_face(self, points, face) -> np.ndarray:
+        """(N,) bool: which surface points (N, 3) lie on ``face``, a face label from
+        ``random_cut`` (only primitives whose cuts name a face define it)."""
+        raise NotImplementedError
+
+    def error_measures(self, fitted: Model) -> dict[str, float]:
+        """Errors of the fitted model (same primitive) against this one as the truth,
+        named as in ``jaxfit.evaluation.measures`` (keys per primitive)."""
+        raise NotImplementedError
+
+    def scene_surfaces(self) -> list[tuple[Model, float, Callable]]:
+        """What ``synthetic.scene`` samples of this primitive standing on its floor:
+        (surface model, area, ``sample(count, rng)``) per surface. Default: the model
+        itself, ``area()`` and ``sample``."""
+        return [(self, self.area(), self.sample)]
+
     def to_dict(self) -> dict:
         """JSON-ready parameters: ``{"type": name, field: list | float, ...}``."""
         out = {"type": self.name}
@@ -237,6 +312,31 @@ class Model:
 
     def _array(self, field):
         return np.asarray(getattr(self, field), dtype=np.float64)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)  # eq=False: == on array fields would be ambiguous
+class Cut:
+    """A part of a model's surface, deleted in the incomplete scenarios: the surface
+    points p with ``(p - origin) . direction > 0``, on the whole surface, or only on
+    ``face`` where one is named (``Model.on_face``).
+
+    origin : (3,) a point on the cutting plane.
+    direction : (3,) unit normal of the cutting plane, pointing into the deleted part.
+    face : None, or a face label of the model (the box's: (axis index i, sign +-1), the
+        face whose outward normal is sign * rotation[:, i]).
+    """
+
+    origin: np.ndarray
+    direction: np.ndarray
+    face: tuple[int, int] | None = None
+
+    def covers(self, model: Model, points) -> np.ndarray:
+        """(N,) bool: which surface points (N, 3) of ``model`` lie in the deleted part."""
+        points = np.asarray(points, dtype=np.float64)
+        beyond = (points - self.origin) @ self.direction > 0
+        if self.face is None:
+            return beyond
+        return beyond & model.on_face(points, self.face)
 
 
 def as_points(points):

@@ -173,3 +173,49 @@ def main_interval(values, gap):
     a, b = starts[int(np.argmax(totals))], ends[int(np.argmax(totals))]
     inside = v[(which >= a) & (which < b)]
     return inside.min(), inside.max()
+
+
+def random_units(count: int, rng) -> np.ndarray:
+    """(count, 3) unit vectors uniform on the sphere, from ``rng.normal``."""
+    v = rng.normal(size=(count, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def axial_cut_direction(axis, rng) -> np.ndarray:
+    """Unit normal (3,) of a random plane containing the line along ``axis`` (3,): a
+    direction orthogonal to the axis at a uniform angle. Either side of such a plane
+    holds half of a surface of revolution about that line (and of a disk about it)."""
+    angle = rng.uniform(0.0, 2.0 * np.pi)
+    return frame(axis) @ np.array([np.cos(angle), np.sin(angle), 0.0])
+
+
+def disk_bounds(center, normal, radius):
+    """Axis-aligned bounds (lo (3,), hi (3,)) of a disk of ``radius`` about ``center``
+    (3,) with unit ``normal`` (3,): it reaches radius * sqrt(1 - n_i^2) along axis i."""
+    reach = radius * np.sqrt(np.clip(1.0 - np.asarray(normal) ** 2, 0.0, None))
+    return np.asarray(center) - reach, np.asarray(center) + reach
+
+
+def union_bounds(bounds):
+    """Axis-aligned bounds (lo (3,), hi (3,)) enclosing every (lo, hi) pair in ``bounds``."""
+    return np.min([b[0] for b in bounds], axis=0), np.max([b[1] for b in bounds], axis=0)
+
+
+def axis_angle_deg(a, b) -> float:
+    """Angle in degrees, in [0, 90], between the lines along vectors a (3,) and b (3,).
+
+    atan2 of |a x b| and |a . b| rather than arccos, which loses digits near 0 degrees.
+    """
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), abs(a @ b))))
+
+
+def point_distance(a, b) -> float:
+    """Euclidean distance between two points a (3,) and b (3,)."""
+    return float(np.linalg.norm(np.asarray(a, float) - np.asarray(b, float)))
+
+
+def unit(v) -> np.ndarray:
+    """v (3,) scaled to unit length (NumPy, float64)."""
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)

@@ -20,13 +20,15 @@ theta = (n1 (3), n2 (3), n3 (3), D1, D2, D3) with faces n_i . p = D_i.
 
 from __future__ import annotations
 
+import functools
+import itertools
 from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, as_points, register
 
 #: Bins of the in-loop histogram over [-1, 1], the range of a normalised cloud.
 HISTOGRAM_BINS = 128
@@ -40,6 +42,9 @@ POLAR_STEPS = 3
 #: The oriented estimator's two normals must be at least 60 degrees apart (sine 0.87): a
 #: box's faces meet at 90, and estimated normals are off by a few degrees.
 ORIENTED_MIN_SIN = 0.87
+#: The faces (axis i, sign) a scan sees of a box resting on its -rotation[:, 2] face, in
+#: the order ``scene_surfaces`` gives them.
+UPPER_FACES = ((0, 1), (0, -1), (1, 1), (1, -1), (2, 1))
 
 
 
@@ -172,6 +177,119 @@ class Box(Model):
         import trimesh
 
         return trimesh.creation.box(extents=self._array("extents"), transform=matrix)
+
+    # ----- facts for scenes, scenarios and the evaluation ---------------------------------
+    #: The thesis deletes a strip of 10 % of the area (``random_cut``).
+    removed_share: ClassVar[float] = 0.1
+    shown_measures: ClassVar[tuple[str, ...]] = ("side_rel_max", "axis_angle_deg", "center_error")
+
+    @classmethod
+    def random(cls, rotation, center, size, rng):
+        """Sides size * U(0.6, 1.4) each along the columns of ``rotation`` (with the box's
+        sign rule)."""
+        return cls(center, canonical_rotation(rotation), size * rng.uniform(0.6, 1.4, 3))
+
+    def size(self):
+        """The mean side."""
+        return float(np.mean(self.extents))
+
+    def area(self):
+        """Area of the six faces."""
+        ext = self._array("extents")
+        return float(2.0 * (ext[0] * ext[1] + ext[0] * ext[2] + ext[1] * ext[2]))
+
+    def bounding_box(self):
+        half = 0.5 * np.abs(self.rotation) @ self.extents
+        return self.center - half, self.center + half
+
+    def random_cut(self, rng):
+        """A strip along one edge of one of the two largest faces, with 10 % of the area.
+
+        The face is perpendicular to the shortest side (axis i, random sign). Of its two
+        in-face axes, a random one k is the strip's length direction; the strip lies
+        against the face's edge at +-e_j / 2 along the other axis j (random sign) and has
+        width w = 10 % of the total area / e_k. The largest faces hold at least 1/6 of the
+        area, so w < e_j always.
+        """
+        ext = np.asarray(self.extents, dtype=np.float64)
+        rot = np.asarray(self.rotation, dtype=np.float64)
+        i = int(np.argmin(ext))
+        j, k = rng.permutation([a for a in range(3) if a != i])
+        face_sign, edge_sign = rng.choice([-1, 1], size=2)
+        width = self.removed_share * self.area() / ext[k]
+        direction = edge_sign * rot[:, j]
+        origin = self.center + (0.5 * ext[j] - width) * direction
+        return Cut(origin, direction, (i, int(face_sign)))
+
+    def on_face(self, points, face):
+        """(N,) bool: the points (N, 3) nearest to the face (axis i, sign +-1) of all six."""
+        local = (points - np.asarray(self.center)) @ np.asarray(self.rotation)
+        axis = np.argmin(np.abs(0.5 * np.asarray(self.extents) - np.abs(local)), axis=1)
+        nearest = 2 * axis + (local[np.arange(len(points)), axis] > 0)
+        return nearest == face[0] * 2 + (face[1] > 0)
+
+    def error_measures(self, fitted):
+        """side_error_0..2 (|side_e - side_o| for the true sides extents[0..2], each fitted
+        side matched to a true one by ``match_box_axes``), side_error_max, side_rel_max
+        (largest error relative to its true side), center_error, axis_angle_deg (largest
+        angle between matched axes)."""
+        perm = list(match_box_axes(self.rotation, fitted.rotation))
+        true_sides = np.asarray(self.extents, float)
+        side = np.abs(np.asarray(fitted.extents, float)[perm] - true_sides)
+        t_rot, f_rot = np.asarray(self.rotation, float), np.asarray(fitted.rotation, float)
+        angles = [g.axis_angle_deg(t_rot[:, i], f_rot[:, perm[i]]) for i in range(3)]
+        out = {f"side_error_{i}": float(side[i]) for i in range(3)}
+        out.update({
+            "side_error_max": float(side.max()),
+            "side_rel_max": float(np.max(side / true_sides)),
+            "center_error": g.point_distance(self.center, fitted.center),
+            "axis_angle_deg": max(angles),
+        })
+        return out
+
+    def scene_surfaces(self):
+        """The five faces a scan sees of the box resting on the floor (``UPPER_FACES``)
+        as Planes (a disk patch around each face, for ``to_mesh``), each with its
+        rectangle's area and a sampler of the rectangle."""
+        from .plane import Plane  # here: at the top it would register Plane before Box
+
+        rot, ext, center = self._array("rotation"), self._array("extents"), self._array("center")
+        out = []
+        for axis, sign in UPPER_FACES:
+            normal = g.sign_canonical(sign * rot[:, axis])
+            middle = center + sign * 0.5 * ext[axis] * rot[:, axis]
+            others = np.delete(ext, axis)
+            face = Plane(normal, np.float64(-normal @ middle), middle,
+                         np.float64(0.5 * np.hypot(*others)))
+            out.append((face, float(np.prod(others)),
+                        functools.partial(self.sample_face, axis, sign)))
+        return out
+
+    def sample_face(self, axis: int, sign: int, count: int, rng):
+        """(count, 3) points uniform on the face (axis, sign +-1) and its outward normal,
+        repeated (count, 3)."""
+        rot, ext = self._array("rotation"), self._array("extents")
+        local = rng.uniform(-0.5, 0.5, (count, 3)) * ext
+        local[:, axis] = sign * 0.5 * ext[axis]
+        return local @ rot.T + self._array("center"), np.tile(sign * rot[:, axis], (count, 1))
+
+
+#: The six assignments of fitted box axes to true ones.
+_PERMUTATIONS = tuple(itertools.permutations(range(3)))
+
+
+def match_box_axes(true_rotation, fitted_rotation) -> tuple[int, int, int]:
+    """For each true axis i (column i of ``true_rotation`` (3, 3)), the fitted column that
+    matches it: the permutation maximising the sum of |cos| between matched axes."""
+    cos = np.abs(np.asarray(true_rotation, float).T @ np.asarray(fitted_rotation, float))
+    return max(_PERMUTATIONS, key=lambda perm: cos[[0, 1, 2], list(perm)].sum())
+
+
+def canonical_rotation(rotation):
+    """``rotation`` (3, 3) under the box's sign rule: its first two columns flipped to a
+    positive largest-magnitude component, the third their cross product (det stays +1)."""
+    first = g.sign_canonical(rotation[:, :2].T)
+    return np.stack([first[0], first[1], np.cross(first[0], first[1])], axis=1)
 
 
 def _polish_faces(proj, near, far, threshold, rounds: int = 2):

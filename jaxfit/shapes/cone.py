@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, as_points, register
 
 # Half-angles this close to 0 or 90 degrees are a cylinder or a plane, not a cone.
 MIN_ANGLE = 1e-3
@@ -152,3 +152,50 @@ class Cone(Model):
             radius=float(self.base_radius), height=float(self.height), sections=sections,
             transform=matrix,
         )
+
+    # ----- facts for scenes, scenarios and the evaluation ---------------------------------
+    removed_share: ClassVar[float] = 0.5
+    shown_measures: ClassVar[tuple[str, ...]] = (
+        "axis_angle_deg", "aperture_error_deg", "height_rel")
+    axial_bounds: ClassVar[bool] = True
+
+    @classmethod
+    def random(cls, rotation, center, size, rng):
+        """Height 2 size along ``rotation[:, 2]`` (from the apex), centred on ``center``,
+        half-angle U(20, 40) degrees. The axis points into the cone: no sign rule."""
+        axis = rotation[:, 2]
+        half_angle = rng.uniform(np.radians(20.0), np.radians(40.0))
+        height = 2.0 * size
+        return cls(center - 0.5 * height * axis, axis, np.float64(half_angle), np.float64(height))
+
+    def size(self):
+        """The base's radius."""
+        return float(self.base_radius)
+
+    def area(self):
+        """Area of the side (the base is not sampled)."""
+        slant = float(self.height) / np.cos(float(self.half_angle))
+        return np.pi * float(self.base_radius) * slant
+
+    def bounding_box(self):
+        """Bounds of the apex and the base disk."""
+        base = self.apex + self.height * self.axis
+        return g.union_bounds([g.disk_bounds(base, self.axis, self.base_radius),
+                               (self.apex, self.apex)])
+
+    def random_cut(self, rng):
+        """The half of the side on one side of a random plane containing the axis (50 %)."""
+        return Cut(np.asarray(self.apex, dtype=np.float64), g.axial_cut_direction(self.axis, rng))
+
+    def error_measures(self, fitted):
+        """height_error, height_rel (/ H_o), aperture_error_deg |half_angle_e -
+        half_angle_o| in degrees, axis_angle_deg (signs ignored), apex_error
+        |apex_e - apex_o|."""
+        height_error = abs(float(fitted.height) - float(self.height))
+        aperture = abs(float(fitted.half_angle) - float(self.half_angle))
+        return {
+            "height_error": height_error, "height_rel": height_error / float(self.height),
+            "aperture_error_deg": float(np.degrees(aperture)),
+            "axis_angle_deg": g.axis_angle_deg(self.axis, fitted.axis),
+            "apex_error": g.point_distance(self.apex, fitted.apex),
+        }

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Model, as_points, register
+from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, as_points, register
 
 
 @register
@@ -110,3 +110,47 @@ class Cylinder(Model):
             radius=float(self.radius), height=float(self.height), sections=sections,
             transform=matrix,
         )
+
+    # ----- facts for scenes, scenarios and the evaluation ---------------------------------
+    removed_share: ClassVar[float] = 0.5
+    shown_measures: ClassVar[tuple[str, ...]] = ("axis_angle_deg", "radius_rel", "height_rel")
+    axial_bounds: ClassVar[bool] = True
+
+    @classmethod
+    def random(cls, rotation, center, size, rng):
+        """Radius size / 2 and height 2 size along ``rotation[:, 2]``; ``rng`` is not used."""
+        axis = g.sign_canonical(rotation[:, 2])
+        return cls(center, axis, np.float64(0.5 * size), np.float64(2.0 * size))
+
+    def size(self):
+        """The radius."""
+        return float(self.radius)
+
+    def area(self):
+        """Area of the side (the caps are not sampled)."""
+        return 2.0 * np.pi * float(self.radius) * float(self.height)
+
+    def bounding_box(self):
+        ends = self.center + np.outer([-0.5, 0.5], self.axis) * self.height
+        return g.union_bounds([g.disk_bounds(end, self.axis, self.radius) for end in ends])
+
+    def random_cut(self, rng):
+        """The half of the side on one side of a random plane containing the axis (50 %)."""
+        return Cut(np.asarray(self.center, dtype=np.float64), g.axial_cut_direction(self.axis, rng))
+
+    def error_measures(self, fitted):
+        """radius_error, radius_rel (/ R_o), height_error, height_rel (/ H_o),
+        axis_angle_deg (signs ignored), axis_offset (distance of the true centre C_o to
+        the fitted axis line), center_error."""
+        radius_error = abs(float(fitted.radius) - float(self.radius))
+        height_error = abs(float(fitted.height) - float(self.height))
+        # How far the fitted axis line passes from the true centre (a point of the true axis).
+        axis = g.unit(fitted.axis)
+        v = np.asarray(self.center, float) - np.asarray(fitted.center, float)
+        return {
+            "radius_error": radius_error, "radius_rel": radius_error / float(self.radius),
+            "height_error": height_error, "height_rel": height_error / float(self.height),
+            "axis_angle_deg": g.axis_angle_deg(self.axis, fitted.axis),
+            "axis_offset": float(np.linalg.norm(v - (v @ axis) * axis)),
+            "center_error": g.point_distance(self.center, fitted.center),
+        }

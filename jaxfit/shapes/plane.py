@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Model, register
+from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, register
 
 
 @register
@@ -109,6 +109,47 @@ class Plane(Model):
             raise ValueError("an unbounded plane has no mesh; fit it to get a bounded patch")
         matrix = g.transform(g.frame(self.normal), self.center)
         return _disk(float(self.radius), sections, matrix)
+
+    # ----- facts for scenes, scenarios and the evaluation ---------------------------------
+    removed_share: ClassVar[float] = 0.5
+    shown_measures: ClassVar[tuple[str, ...]] = ("normal_angle_deg", "offset_error")
+
+    @classmethod
+    def random(cls, rotation, center, size, rng):
+        """Normal ``rotation[:, 2]`` through ``center``, disk patch of radius ``size``;
+        ``rng`` is not used."""
+        axis = g.sign_canonical(rotation[:, 2])
+        return cls(axis, np.float64(-axis @ center), center, np.float64(size))
+
+    def size(self):
+        """The disk patch's radius."""
+        return float(self.radius)
+
+    def area(self):
+        """Area of the disk patch."""
+        return np.pi * float(self.radius) ** 2
+
+    def bounding_box(self):
+        """Bounds of the disk patch."""
+        return g.disk_bounds(self.center, self.normal, self.radius)
+
+    def random_cut(self, rng):
+        """The half of the disk patch on one side of a random line through its centre
+        (50 %; not in the thesis)."""
+        return Cut(np.asarray(self.center, dtype=np.float64),
+                   g.axial_cut_direction(self.normal, rng))
+
+    def error_measures(self, fitted):
+        """normal_angle_deg (signs ignored), offset_error (|offset_e - offset_o| once the
+        fitted normal's sign agrees with the true one)."""
+        # n . p + d = 0 and -n . p - d = 0 are one plane: align the signs before comparing d.
+        t_n, f_n = g.unit(self.normal), np.asarray(fitted.normal, float)
+        f_len = np.linalg.norm(f_n)
+        sign = 1.0 if t_n @ f_n >= 0 else -1.0
+        offset = sign * float(fitted.offset) / f_len
+        t_offset = float(self.offset) / np.linalg.norm(np.asarray(self.normal, float))
+        return {"normal_angle_deg": g.axis_angle_deg(t_n, f_n),
+                "offset_error": abs(offset - t_offset)}
 
 
 def _disk(radius, sections, matrix):

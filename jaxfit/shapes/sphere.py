@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _LENGTH, _POINT, Model, register
+from ._base import _LENGTH, _POINT, Cut, Model, register
 
 
 @register
@@ -82,8 +82,7 @@ class Sphere(Model):
 
     def sample(self, count, rng):
         """(count, 3) points uniform on the sphere and their outward normals (count, 3)."""
-        normals = rng.normal(size=(count, 3))
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = g.random_units(count, rng)
         return self.center + self.radius * normals, normals
 
     def distance(self, points):
@@ -95,3 +94,35 @@ class Sphere(Model):
         mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=float(self.radius))
         mesh.apply_translation(self._array("center"))
         return mesh
+
+    # ----- facts for scenes, scenarios and the evaluation ---------------------------------
+    removed_share: ClassVar[float] = 0.5
+    shown_measures: ClassVar[tuple[str, ...]] = ("center_rel", "radius_rel", "mee")
+
+    @classmethod
+    def random(cls, rotation, center, size, rng):
+        """Radius ``size``; ``rotation`` and ``rng`` are not used."""
+        return cls(center, np.float64(size))
+
+    def size(self):
+        """The radius."""
+        return float(self.radius)
+
+    def area(self):
+        return 4.0 * np.pi * float(self.radius) ** 2
+
+    def bounding_box(self):
+        return self.center - self.radius, self.center + self.radius
+
+    def random_cut(self, rng):
+        """The hemisphere on one side of a random plane through the centre (50 %)."""
+        return Cut(self.center, g.random_units(1, rng)[0])
+
+    def error_measures(self, fitted):
+        """radius_error |R_e - R_o|, radius_rel (/ R_o), center_error |C_e - C_o|,
+        center_rel (/ R_o)."""
+        radius = float(self.radius)
+        center = g.point_distance(self.center, fitted.center)
+        radius_error = abs(float(fitted.radius) - radius)
+        return {"radius_error": radius_error, "radius_rel": radius_error / radius,
+                "center_error": center, "center_rel": center / radius}
