@@ -33,8 +33,8 @@ import jax
 import numpy as np
 
 from . import _checks
-from .normals import estimate_normals
 from .engine import DEFAULT_THRESHOLD_FRACTION, fit
+from .normals import estimate_normals
 from .shapes import Model
 
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")

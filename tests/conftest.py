@@ -12,6 +12,8 @@ import jax
 import numpy as np
 import pytest
 
+from jaxfit.engine.cloud import normalise as unit_ball  # noqa: F401 - the engine's frame
+from jaxfit.engine.kernel import estimate_batch as estimate  # noqa: F401 - as the engine calls it
 from jaxfit.shapes import REGISTRY
 
 SHAPES = sorted(REGISTRY)
@@ -52,24 +54,6 @@ def data_dir():
     if not DATA.is_dir():
         pytest.skip(f"shared data not found at {DATA} (it sits beside the checkout)")
     return DATA
-
-
-def estimate(cls, samples, support, normals=None, estimator: str = "thesis"):
-    """A primitive's estimator over a batch, as the engine calls it (the shape's public
-    seam, ``cls.estimator``): samples (H, k, 3), support (M, 3) points in the unit ball,
-    and for an estimator that reads them the samples' normals (H, k, 3) -> thetas (H, P),
-    valid (H,)."""
-    est = cls.estimator(estimator)
-    normals = normals if est.uses_normals else None
-    return jax.vmap(est.estimate, in_axes=(0, 0 if est.uses_normals else None, None))(
-        samples, normals, support)
-
-
-def unit_ball(points):
-    """Centre (3,) and scale that map points (N, 3) into the unit ball (the frame the
-    engine estimates in: the box's histogram bins span [-1, 1])."""
-    center = 0.5 * (points.min(axis=0) + points.max(axis=0))
-    return center, float(np.linalg.norm(points - center, axis=1).max())
 
 
 def axis_angle_deg(a, b):

@@ -170,19 +170,17 @@ class Model:
         surface normal, so the slope is the cosine between ``m`` and that normal: the
         normal gate's measure. JAX: one JVP; NumPy: a central difference of ``step``."""
         if xp is np:
-            ahead, back = (cls.theta_residual(
-                theta, tuple(c + s * d for c, d in zip(p, m, strict=True)), np)
-                for s in (step, -step))
-            return cls.theta_residual(theta, p, np), (ahead - back) / (2 * step)
+            along = central_difference(lambda q: cls.theta_residual(theta, q, np), p, m, step)
+            return cls.theta_residual(theta, p, np), along / (2 * step)
         return jax.jvp(lambda *c: cls.theta_residual(theta, c, jnp), tuple(p), tuple(m))
 
     def surface_normal(self, points, step: float = SLOPE_STEP):
-        """Unit normals (N, 3) of the unbounded surface near points (N, 3): the gradient of
-        the residual by central differences of ``step`` (the residual's sign decides the
-        normal's)."""
+        """Unit normals (N, 3) of the surface ``residual`` measures (a box's six faces)
+        near points (N, 3): its gradient by central differences of ``step``; the
+        residual's sign decides the normal's."""
         p = components(as_points(points))
-        grad = np.stack([self.residual_slope(self.theta(), p, e, np, step)[1]
-                         for e in np.eye(3)], axis=1)
+        grad = np.stack([central_difference(lambda q: self.residual(np.stack(q, axis=1)), p,
+                                            e, step) for e in np.eye(3)], axis=1)
         return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
 
     @staticmethod
@@ -345,6 +343,13 @@ def as_points(points):
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {arr.shape}")
     return arr
+
+
+def central_difference(f, p, m, step: float):
+    """f(p + step m) - f(p - step m) for coordinate sequences p and m (three arrays each):
+    the one finite difference behind ``residual_slope`` and ``surface_normal``."""
+    ahead, back = (f(tuple(c + s * d for c, d in zip(p, m, strict=True))) for s in (step, -step))
+    return ahead - back
 
 
 def components(points):
