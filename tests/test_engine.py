@@ -1,0 +1,173 @@
+"""The engine's seams: one checked options object, the bounds pytree, and stages that can
+be swapped (a sampler, a scorer, a stopping rule and a local optimiser written here, in
+the test, each one small class)."""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxfit
+from jaxfit.engine import (
+    MSAC,
+    AdaptiveStopping,
+    Bounds,
+    FitOptions,
+    LevenbergMarquardt,
+    Sampler,
+    Scorer,
+    Status,
+    StoppingRule,
+    UniformSampler,
+)
+from jaxfit.engine.refine import LocalOptimizer
+from jaxfit.engine.scoring import score_one
+from jaxfit.evaluation.synthetic import demo_cloud
+from jaxfit.shapes import REGISTRY, Cylinder, Plane, Sphere
+
+POINTS, TRUE, _ = demo_cloud("sphere", count=600, outlier_ratio=0.4, seed=5)
+
+
+def same(a, b):
+    """Whether two FitResults are identical, bit for bit."""
+    return (a.model.to_dict() == b.model.to_dict() and np.array_equal(a.inliers, b.inliers)
+            and a.cost == b.cost and a.num_hypotheses == b.num_hypotheses
+            and a.status == b.status)
+
+
+def test_options_object_and_keywords_give_the_same_fit():
+    by_keywords = jaxfit.fit(POINTS, "sphere", confidence=0.995, max_stall=5000, key=3)
+    options = FitOptions(confidence=0.995, max_stall=5000)
+    assert same(jaxfit.fit(POINTS, "sphere", options=options, key=3), by_keywords)
+    # Keywords replace the object's values.
+    loose = FitOptions(confidence=0.5)
+    assert same(jaxfit.fit(POINTS, "sphere", options=loose, confidence=0.995, max_stall=5000,
+                           key=3), by_keywords)
+    # The default stages, given explicitly, are the defaults.
+    explicit = FitOptions(sampler=UniformSampler(), scorer=MSAC(), stopping=AdaptiveStopping(),
+                          refiner=LevenbergMarquardt())
+    assert same(jaxfit.fit(POINTS, "sphere", options=explicit, key=3),
+                jaxfit.fit(POINTS, "sphere", key=3))
+
+
+def test_unknown_or_wrong_options_are_named():
+    with pytest.raises(TypeError, match="unknown fit option.*'confidnce'.*confidence"):
+        jaxfit.fit(POINTS, "sphere", confidnce=0.9)
+    with pytest.raises(TypeError, match="options must be a jaxfit.FitOptions"):
+        jaxfit.fit(POINTS, "sphere", options={"confidence": 0.9})
+    with pytest.raises(TypeError, match="scorer must be a jaxfit Scorer"):
+        jaxfit.fit(POINTS, "sphere", scorer="msac")
+    with pytest.raises(ValueError, match="unknown estimator"):
+        FitOptions(estimator="magic").check(Sphere)
+    with pytest.raises(ValueError, match="min_hypotheses must be a non-negative integer"):
+        FitOptions(min_hypotheses=True).check(Sphere)
+
+
+def test_check_resolves_for_the_shape_and_is_idempotent():
+    checked = FitOptions(batch_size=np.int64(128), radius_range=(0.5, 2)).check(Cylinder)
+    assert checked.batch_size == 128 and type(checked.batch_size) is int
+    assert checked.estimator == Cylinder.default_estimator
+    assert checked.min_hypotheses == Cylinder.estimator().min_hypotheses
+    assert checked.check(Cylinder) == checked
+    assert (checked.bounds.radius_low, checked.bounds.radius_high) == (0.5, 2.0)
+    # A plane asked for the oriented estimator uses its thesis one.
+    assert FitOptions(estimator="oriented").check(Plane).estimator == "thesis"
+    assert FitOptions(estimator="thesis").check(Cylinder).min_hypotheses == 8192
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        checked.batch_size = 3
+
+
+def test_bounds_admit_exactly_the_bounded_hypotheses():
+    bounds = Bounds.of(Cylinder, radius_range=(0.2, 0.5), axis_prior=((0, 0, 2), 30))
+    assert np.allclose(bounds.axis, [0, 0, 1]) and np.isclose(bounds.axis_cos, np.cos(np.pi / 6))
+    assert not bounds.gated and Bounds.of(Cylinder, normal_angle=20).gated
+
+    def cylinder(radius, tilt_deg):
+        axis = [np.sin(np.radians(tilt_deg)), 0.0, np.cos(np.radians(tilt_deg))]
+        return Cylinder(np.zeros(3), np.asarray(axis), radius, 1.0).theta()
+
+    cases = [(0.3, 0, True), (0.3, 29, True), (0.3, 31, False), (0.3, 151, True),
+             (0.1, 0, False), (0.6, 0, False), (0.5, 10, True)]
+    for radius, tilt, expected in cases:
+        assert bool(bounds.admits(Cylinder, jnp.asarray(cylinder(radius, tilt)))) is expected
+    # Scaling moves radii, not directions; stacking gives one row per cloud.
+    half = bounds.scaled(2.0)
+    assert (half.radius_low, half.radius_high, half.axis_cos) == (0.1, 0.25, bounds.axis_cos)
+    rows = Bounds.stack([bounds, half], np.float32)
+    assert rows.axis.shape == (2, 3) and rows.radius_low.dtype == np.float32
+    with pytest.raises(ValueError, match="radius_range does not apply to a plane"):
+        Bounds.of(Plane, radius_range=(0, 1))
+
+
+# ----- stages written here: each one small class ----------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class RansacScorer(Scorer):
+    """Plain RANSAC: an inlier costs nothing, an outlier t^2 (counts inliers only)."""
+
+    def loss(self, r2, t2):
+        return jnp.where(r2 < t2, 0.0, t2)
+
+    def inlier(self, r2, t2):
+        return r2 < t2
+
+
+@dataclasses.dataclass(frozen=True)
+class RepeatingSampler(Sampler):
+    """Every sample is the first point k times: always degenerate."""
+
+    def draw(self, key, n_valid, batch_size, sample_size):
+        idx = jnp.zeros((batch_size, sample_size), jnp.int32)
+        return idx, jnp.zeros(batch_size, bool)
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedCount(StoppingRule):
+    """Stop after a fixed number of hypotheses."""
+
+    count: int = 512
+
+    def status(self, inliers, points, drawn, since_best, sample_size, options):
+        return Status.CONVERGED if drawn >= self.count else None
+
+
+@dataclasses.dataclass(frozen=True)
+class KeepAsIs(LocalOptimizer):
+    """No change: the hypothesis and its cost as they are."""
+
+    def refine(self, cls, theta, points, n_valid, threshold, bounds, normals, n_chunks, rows,
+               scorer):
+        gate = None if normals is None else (normals, bounds.normal_cos)
+        return (theta, *score_one(cls, theta, points, n_valid, threshold, gate, n_chunks,
+                                  scorer))
+
+
+def test_a_scorer_is_one_class():
+    plain = jaxfit.fit(POINTS, "sphere", scorer=RansacScorer(), key=1)
+    assert np.linalg.norm(plain.model.center - TRUE.center) < 0.02 * TRUE.radius
+    assert abs(plain.model.radius / TRUE.radius - 1) < 0.02
+
+
+def test_a_sampler_is_one_class_and_is_used():
+    with pytest.raises(jaxfit.FitError, match="no valid sphere hypothesis"):
+        jaxfit.fit(POINTS, "sphere", sampler=RepeatingSampler(), max_hypotheses=512, key=1)
+
+
+def test_a_stopping_rule_is_one_class():
+    result = jaxfit.fit(POINTS, "sphere", stopping=FixedCount(768), key=1)
+    assert result.num_hypotheses == 768 and result.status is Status.CONVERGED
+
+
+def test_a_local_optimiser_is_one_class():
+    kept = jaxfit.fit(POINTS, "sphere", refiner=KeepAsIs(), key=1)
+    raw = jaxfit.fit(POINTS, "sphere", refine=False, key=1)
+    assert kept.num_hypotheses == raw.num_hypotheses
+    np.testing.assert_allclose(kept.model.center, raw.model.center, atol=1e-6)
+
+
+def test_every_registered_shape_takes_the_same_options():
+    options = FitOptions(max_hypotheses=256, refine=False)
+    for cls in REGISTRY.values():
+        checked = options.check(cls)
+        assert checked.estimator in cls.estimators and checked.bounds is not None
