@@ -68,8 +68,11 @@ REGISTRY: dict[str, type[Model]] = {}
 #: Step of the central differences that give a residual's slope in NumPy.
 SLOPE_STEP = 1e-6
 
-# How each field changes when the cloud is mapped by p -> p * scale + shift.
-_POINT, _LENGTH, _INVARIANT = "point", "length", "invariant"
+#: How each field changes when the cloud is mapped by p -> p * scale + shift (the kinds
+#: of ``Model.field_specs``): a point scales and shifts, a length scales, a direction or
+#: an angle stays.
+POINT, LENGTH, INVARIANT = "point", "length", "invariant"
+_POINT, _LENGTH, _INVARIANT = POINT, LENGTH, INVARIANT
 
 
 @dataclasses.dataclass(frozen=True)
