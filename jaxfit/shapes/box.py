@@ -67,10 +67,12 @@ def histogram_mode_offsets(normals, support):
 class Box(Model):
     """Oriented box.
 
-    center : (..., 3).
-    rotation : (..., 3, 3) proper rotation whose columns are the box's axes; sign rule:
-        the first two columns have their largest-magnitude component positive.
-    extents : (..., 3) full side lengths along those columns.
+    center : (3,).
+    rotation : (3, 3) proper rotation whose columns are the box's axes; sign rule: the
+        first two columns have their largest-magnitude component positive.
+    extents : (3,) full side lengths along those columns.
+
+    One box per model: the methods take unbatched fields (see ``Model``).
     """
 
     center: np.ndarray

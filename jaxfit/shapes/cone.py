@@ -30,10 +30,12 @@ MIN_ANGLE = 1e-3
 class Cone(Model):
     """Finite right circular cone.
 
-    apex : (..., 3).
-    axis : (..., 3) unit, pointing from the apex into the cone.
-    half_angle : (...,) in radians, in (0, pi/2).
-    height : (...,) distance from the apex to the base disk along the axis.
+    apex : (3,).
+    axis : (3,) unit, pointing from the apex into the cone.
+    half_angle : () in radians, in (0, pi/2).
+    height : () distance from the apex to the base disk along the axis.
+
+    One cone per model: the methods take unbatched fields (see ``Model``).
     """
 
     apex: np.ndarray

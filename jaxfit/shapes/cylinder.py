@@ -23,10 +23,12 @@ from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, as_points, register
 class Cylinder(Model):
     """Finite cylinder.
 
-    center : (..., 3) middle of the axis segment.
-    axis : (..., 3) unit; sign rule: its largest-magnitude component is positive.
-    radius : (...,) positive.
-    height : (...,) length of the axis segment.
+    center : (3,) middle of the axis segment.
+    axis : (3,) unit; sign rule: its largest-magnitude component is positive.
+    radius : () positive.
+    height : () length of the axis segment.
+
+    One cylinder per model: the methods take unbatched fields (see ``Model``).
     """
 
     center: np.ndarray

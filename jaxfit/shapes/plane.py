@@ -18,10 +18,12 @@ from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, register
 class Plane(Model):
     """Plane ``normal . p + offset = 0``.
 
-    normal : (..., 3) unit vector; sign rule: its largest-magnitude component is positive.
-    offset : (...,) signed offset.
-    center, radius : optional disk patch (centre on the plane, radius) around the
-        inliers, for ``to_mesh``. ``None`` means no patch.
+    normal : (3,) unit vector; sign rule: its largest-magnitude component is positive.
+    offset : () signed offset.
+    center, radius : optional disk patch ((3,) centre on the plane, () radius) around
+        the inliers, for ``to_mesh``. ``None`` means no patch.
+
+    One plane per model: the methods take unbatched fields (see ``Model``).
     """
 
     normal: np.ndarray

@@ -19,8 +19,10 @@ from ._base import _LENGTH, _POINT, Cut, Model, register
 class Sphere(Model):
     """Sphere.
 
-    center : (..., 3).
-    radius : (...,) positive.
+    center : (3,).
+    radius : () positive.
+
+    One sphere per model: the methods take unbatched fields (see ``Model``).
     """
 
     center: np.ndarray
