@@ -1,4 +1,9 @@
-"""Command line: ``jaxfit fit CLOUD --shape S`` and ``jaxfit demo``."""
+"""Command line: ``jaxfit fit CLOUD --shape S``, ``demo``, ``decompose`` and ``evaluate``.
+
+The choices of ``--shape``, ``--estimator``, ``--scenario`` and ``--object`` come from
+``jaxfit.shapes.REGISTRY``, ``ESTIMATORS``, ``scenarios.SCENARIOS`` and
+``synthetic.COMPOSITES``, so a new primitive is a choice without touching this file.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Scene detection: several primitives in one cloud, found one after another.
+"""Scene detection: several primitives in one cloud (N, 3), found one after another.
 
 ``detect(points)`` repeats: fit every candidate shape, keep the best-supported one, take
 its points out of the cloud, until no shape has ``min_inliers`` points of support. The
@@ -10,18 +10,27 @@ cloud's median nearest-neighbour spacing. The normal test keeps a plane from tak
 bottom rim of a cylinder standing on it; the connectivity keeps a plane from taking the
 coplanar tops of two separate boxes.
 
-The fits run on *groups*: the connected components of the points still unassigned (at
-the same radius). Objects resting on a floor fall apart into one group each once the
-floor is taken, so each shape is fitted to all groups in one ``fit_batch`` call (one
-compiled kernel for all of them), and each live group gives up one primitive per round.
-A group can only lose points to a primitive fitted inside it, so deciding the groups
-side by side gives the same result as deciding them one at a time.
+Each round works on *groups*: the connected components of the points still unassigned
+(at the same radius). Objects resting on a floor fall apart into one group each once the
+floor is taken. Every live group gives up at most one primitive per round: each shape is
+fitted (one ``jaxfit.fit`` call per group and shape, on at most ``fit_points`` of the
+group's points) and its support measured on the whole group. A group can only lose
+points to a primitive fitted inside it, so deciding the groups one after another in a
+round gives the same result as deciding each alone.
 
-Choice per group (documented, and deliberately simple): the candidate with the largest
-support wins; but a more complex shape only beats a simpler one (earlier in ``shapes``)
-when its support is larger by more than ``tolerance`` (default 5 %), since a cone or a
-huge sphere can always imitate a plane's points and should not be reported for them.
-Ties in support go to the lower MSAC cost.
+Choice per group (deliberately simple): the candidate with the largest support wins; but
+a more complex shape only beats a simpler one (earlier in ``shapes``) when its support is
+larger by more than ``tolerance`` (default 5 %), since a cone or a huge sphere can always
+imitate a plane's points. When a more complex shape wins, each simpler one is refitted to
+the winner's support and is reported instead if its own support is within the tolerance.
+Ties in support go to the lower MSAC cost. At the end (``settle``) every point within the
+threshold of a detection and near its points goes to the nearest one (``_settled``).
+
+Keys: round r, group g has the key ``fold_in(fold_in(key, r), g)``; in it shape s is
+fitted with ``fold_in(group_key, s)`` and refitted with ``fold_in(group_key, S + s)`` (S
+shapes), the same key drawing the fit's subsample of the group.
+
+Measurements: docs/detect.md.
 """
 
 from __future__ import annotations
@@ -37,6 +46,7 @@ from .engine import DEFAULT_THRESHOLD_FRACTION, fit
 from .normals import estimate_normals
 from .shapes import Model
 
+#: Candidate shapes, simplest first (the order breaks near-ties in support).
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")
 #: Most passes of the final assignment (see ``_settled``); scenes settle in 2-4.
 SETTLE_ROUNDS = 8
@@ -49,7 +59,8 @@ class Detection:
     model : the fitted primitive (bounded, in the input's coordinates).
     indices : (M,) sorted indices into the input points of its support (compatible,
         connected inliers), the points it took out of the cloud.
-    cost : MSAC cost of the fit over its group's points.
+    cost : MSAC cost of the fit over the points it was fitted to (at most ``fit_points``
+        of its group).
     round : detection round (0-based) in which it was taken.
     """
 
@@ -191,10 +202,17 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
     max_angle : largest angle in degrees between a point's normal and the model's.
     connect : connectivity radius in units of the median nearest-neighbour spacing.
     tolerance : relative support margin a more complex shape needs to beat a simpler one.
-    key : int seed or JAX key; round r, shape s uses ``fold_in(key, r * len(shapes) + s)``.
+    fit_points : most points a fit sees: a random subsample of the group (or of the
+        winner's support, for a refit) drawn from the fit's key; its support is then
+        measured on the whole group.
+    settle : give every point within ``threshold`` of a detection, and within the
+        connectivity radius of its points, to the nearest one at the end (``_settled``).
+    key : int seed or JAX key; round r, group g, shape s of S fits with
+        ``fold_in(fold_in(fold_in(key, r), g), s)`` and refits with ``... , S + s)``.
     progress : print one line per detected primitive.
-    **fit_options : passed to ``jaxfit.fit_batch`` (e.g. ``batch_size``,
-        ``min_hypotheses``, ``estimator``).
+    **fit_options : passed to every ``jaxfit.fit`` call (e.g. ``batch_size``,
+        ``min_hypotheses``, ``estimator``; not ``normals``, ``threshold`` or ``key``,
+        which detect sets).
 
     Returns
     -------
@@ -290,8 +308,7 @@ def _settled(found, cloud, threshold, radius):
     test) to their surface, and splits the band where two surfaces meet (a lying
     cylinder's underside within threshold of the floor) by distance instead of by which
     was taken first; the repetition lets a surface take back a band wider than radius
-    (one pass left the middle of a small lying cylinder's underside to the floor: recall
-    0.87). Other points stay unassigned."""
+    (docs/detect.md). Other points stay unassigned."""
     from scipy.spatial import cKDTree
 
     model_dist = np.stack([d.model.distance(cloud) for d in found])  # (D, N)

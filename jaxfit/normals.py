@@ -1,14 +1,11 @@
 """Surface normals of a point cloud by local PCA, oriented where that can be done.
 
-``estimate_normals(points, k=16)`` takes each point's k nearest neighbours (the point
-itself included), and returns the eigenvector of their 3 x 3 covariance with the smallest
-eigenvalue. Neighbours come from scipy's ``cKDTree``: measured against a batched
-brute-force kNN in JAX (``python -m benchmarks.normals``, k = 16, 2 shared and busy
-cores, benchmarks/results/normals.md) the tree takes 0.029 s / 0.56 s / 15 s for
-1e4 / 1e5 / 1e6 points, JAX (warm) 0.38 s / 74 s / not run (O(N^2): ~2 h extrapolated),
-so the tree is used.
-The covariances are batched in NumPy, and their smallest eigenvectors found in closed form
-(``smallest_eigenvectors``; ``numpy.linalg.eigh`` where that is ill-conditioned).
+``estimate_normals(points, k=16)`` gives unit normals (N, 3) of a cloud (N, 3): for each
+point, the eigenvector with the smallest eigenvalue of the 3 x 3 covariance of its k
+nearest neighbours (the point itself included). Neighbours come from scipy's ``cKDTree``
+(a brute-force kNN in JAX is O(N^2)); the covariances are batched in NumPy, and their
+smallest eigenvectors found in closed form (``smallest_eigenvectors``;
+``numpy.linalg.eigh`` where that is ill-conditioned).
 
 Orientation (the sign of each normal) follows Hoppe et al. 1992, "Surface reconstruction
 from unorganized points": a minimum spanning tree over the (undirected) k-NN graph with edge
@@ -17,6 +14,8 @@ smooth stretches first, from one seed per connected component whose sign is fixe
 point away from the centroid (or toward a viewpoint). The cheap option flips every normal
 on its own toward the same direction, which is right for convex objects seen from
 outside and for scans seen from one viewpoint.
+
+Measurements: docs/normals.md.
 """
 
 from __future__ import annotations
@@ -38,7 +37,7 @@ _EPS = 1e-9
 
 #: Below this many queries a cloud's KD-tree query runs on one thread: scipy's own
 #: threads cost more than they save on small clouds, which are instead queried side by
-#: side, one per core (1000 clouds of 500 points: 1.1 -> 0.6 ms per cloud on 2 cores).
+#: side, one per core (docs/normals.md).
 SMALL_QUERY = 4096
 
 
@@ -85,7 +84,7 @@ def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
 
 def _covariances(hood: np.ndarray) -> np.ndarray:
     """Scatter matrices (B, 3, 3) of neighbourhoods (B, k, 3), from sums of products of
-    coordinate arrays (2.5x faster than centring and an einsum over (B, k, 3)). Each
+    coordinate arrays (faster than centring and an einsum over (B, k, 3)). Each
     neighbourhood is first shifted to its first point, so the sums lose no digits on a
     cloud far from the origin."""
     x, y, z = (hood[:, :, i] - hood[:, :1, i] for i in range(3))  # (B, k) each
@@ -104,10 +103,10 @@ def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
     """Unit eigenvectors (B, 3) of the smallest eigenvalue of symmetric 3 x 3 matrices
     cov (B, 3, 3), in closed form: the eigenvalue by the trigonometric solution of the
     characteristic cubic, the vector as the largest cross product of two rows of
-    cov - lambda I (as PCL's eigen33). Batched ``numpy.linalg.eigh`` took 0.8 ms for 500
-    matrices, most of a 500-point cloud's normals; this takes 0.2 ms (3.5x). Where
-    the smallest eigenvalue is (nearly) repeated the cross products vanish and the
-    direction is ill-defined: those rows fall back to ``eigh``.
+    cov - lambda I (as PCL's eigen33), a few times faster than batched
+    ``numpy.linalg.eigh`` (docs/normals.md). Where the smallest eigenvalue is (nearly)
+    repeated the cross products vanish and the direction is ill-defined: those rows fall
+    back to ``eigh``.
     """
     a, b, c = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]  # element arrays: NumPy's
     d, e, f = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]  # batched det/cross were slow
@@ -245,8 +244,7 @@ def normals_at(points: np.ndarray, indices: np.ndarray, k: int = 16) -> np.ndarr
 def normals_at_many(clouds, indices, ks) -> list[np.ndarray]:
     """``normals_at(clouds[i], indices[i], ks[i])`` for every cloud: one KD-tree each,
     one PCA per neighbourhood size over all their clouds stacked (the eigen-solver's fixed
-    cost, some 50 NumPy calls, is paid once per block, not once per cloud). 1000 clouds of
-    500 points: 2.2-2.6 -> 1.8 ms per cloud, most of it now the KD-tree queries."""
+    cost, some 50 NumPy calls, is paid once per block, not once per cloud)."""
     ks = [_check_k(k, len(c)) for c, k in zip(clouds, ks, strict=True)]
     neighbours = knn_many(clouds, [c[i] for c, i in zip(clouds, indices, strict=True)], ks)
     out = [None] * len(clouds)

@@ -1,53 +1,21 @@
-"""BoxDecomposition (Hübner & Kragic 2008), the first step of the PSDA (THESIS.md section 5).
+"""BoxDecomposition (Hübner & Kragic 2008), the first step of the PSDA (THESIS.md section 5):
+a cloud (N, 3) split into boxes whose leaves are the object's parts.
 
-The root is the minimum-volume bounding box (MVBB) of all points. A box is split by a
-plane orthogonal to one of its axes, at one of several fractions along it; the cut whose
-two halves have the smallest total MVBB volume is kept if that total over the parent's
-volume is below ``gain`` and both halves keep ``min_points`` points. The halves are split
-in turn; the boxes that are not split are the leaves, the object's parts.
+The root is the minimum-volume bounding box (MVBB, ``mvbb``) of all points. A box is
+split by a plane orthogonal to one of its axes, at one of several fractions along it; the
+cut whose two halves have the smallest total MVBB volume is kept if it saves enough
+volume (``gain``, against the parent's volume or, with ``reference="root"``, the root's)
+and both halves keep ``min_points`` points. The halves are split in turn; the boxes that
+are not split are the leaves.
 
-On surface points that rule keeps splitting every curved open patch (halving an arc
-quarters its box), so ``reference="root"`` offers the alternative of measuring each
-split's saving against the root's volume, which gives about the thesis's box counts
-(on the GraspIt! models, the Inventor duck and Homer: 0.80 -> 1-2 boxes, 0.96 -> 3-5,
-0.99 -> 4-12).
+Departures, so the cuts fall on the junctions between parts: cuts are tried across the
+box's axes *and* its points' principal axes; the best grid cuts also slide to the
+smallest halves nearby (``_slide``); among near ties (``CUT_TIE``) the cut crossing
+clearly fewer points (``CUT_BAND``, ``CUT_NARROWER``) wins. The MVBB is the hull-face
+heuristic of ``trimesh.bounds.oriented_bounds``, vectorised, on exact face normals, and
+never larger than the axis-aligned or principal box.
 
-Where cuts are tried departs from a plain grid, because the grid is as coarse as the
-parts it should separate: on the built-in lamp (a 0.02 m base under a 0.41 m object,
-grid step 5 % = 0.02 m) the base's leaf kept 0.02 m of the post above it. Cuts are tried
-across the three axes of the box *and* the three principal axes of its points (the
-MVBB of a body of revolution can lie tilted, its axes then cross the junctions at an
-angle); each of the best grid cuts also slides to the place within one grid step where
-its halves' boxes are smallest, which is the junction when there is one (a sliver of a
-part costs its neighbour's whole cross-section per unit of length), and the slid and
-unslid cuts compete by their halves' MVBBs, so a slide they do not confirm is not taken.
-
-Where volumes barely differ the cut crossing the fewest points wins: along one
-direction the volumes place the cut, but between directions, cuts whose halves' total
-volume is within ``CUT_TIE`` (1 %) of the box's volume of the smallest tie, and the one
-with the fewest points within ``CUT_BAND`` (2 %) of its span of its plane (counted on
-the sparser side, so a face lying in the plane does not count) is taken, the narrowest
-cross-section, a junction, if it crosses at most half as many points as the cut with
-the smallest halves (counts on the ranking sample differ by noise: the YCB soup can's
-root had tied cuts crossing 29 and 32 points, and taking the 29 sliced it lengthwise).
-GraspIt!'s hollow mug (20,000 points) shows why: its root MVBB lies turned 34 deg about
-the body's axis, and a slab cut through body and handle (halves 0.864 of the root's
-volume on the ranking sample) beat the cut between body and handle (0.868; it crosses
-8 sample points, the slab cut 46), so the handle never became a part (and the slab
-split no further at gain 0.96). With the tie the first cut separates the handle (1,155
-points) from the body (18,845). Of the other benchmark models at gain 0.96 only the
-Inventor duck's tree changes (one more split: 5 leaves instead of 4); Homer's gain sweep
-goes 2, 2, 3, 4, 5, 12 instead of 2, 2, 3, 4, 6, 11; of the built-in objects the lamp,
-mallet and hammer keep their leaves and the lollipop's cut moves (its leaves hold 2 and
-39 stray points instead of 39 and 0).
-
-The MVBB is the usual hull-face heuristic (the one ``trimesh.bounds.oriented_bounds``
-uses): for a face normal of the convex hull, the smallest rectangle around the hull's
-projection (one side along a silhouette edge) times the height along the normal. Here it
-is vectorised over normals and edges, tries exact face normals (the most promising ones
-by a volume lower bound) rather than rounded directions, and also the axis-aligned and
-principal frames, so it is never larger than the axis-aligned box. It is several times
-faster than trimesh's and as tight or tighter.
+Measurements and the cases behind each choice: docs/decomposition.md.
 """
 
 from __future__ import annotations
@@ -58,6 +26,7 @@ import functools
 import numpy as np
 
 from ..shapes import Box
+from ..shapes.box import canonical_rotation
 
 __all__ = ["DEFAULT_CUTS", "BoxNode", "BoxTree", "box_volume", "decompose_boxes", "mvbb",
            "volume_floor"]
@@ -131,11 +100,7 @@ def _as_cloud(points) -> np.ndarray:
 
 def _make_box(rotation, center, extents) -> Box:
     # The Box sign rule: flipping an axis leaves the box unchanged.
-    big = rotation[np.argmax(np.abs(rotation[:, :2]), axis=0), [0, 1]]
-    r = rotation.copy()
-    r[:, :2] *= np.where(big < 0, -1.0, 1.0)
-    r[:, 2] = np.cross(r[:, 0], r[:, 1])
-    return Box(center, r, extents)
+    return Box(center, canonical_rotation(rotation), extents)
 
 
 def _fit_frame(points, rotation):

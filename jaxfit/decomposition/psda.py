@@ -1,80 +1,29 @@
-"""The Primitive Shape Decomposition Algorithm (PSDA, THESIS.md section 5).
+"""The Primitive Shape Decomposition Algorithm (PSDA, THESIS.md section 5): an object's
+points (N, 3) as a set of primitives, one per part.
 
-1. BoxDecomposition splits the cloud into parts (``jaxfit.boxdecomp``).
-2. Fitting: every part is fitted with every primitive, with a threshold scaled to the
-   part's size; all parts of one primitive go through one ``fit_batch`` call.
-3. Evaluation: each candidate scores the mean distance of *all* the part's points to its
-   closed, bounded surface (of a hollow part's outside: see below); the part's own
-   bounding box competes too; the lowest wins.
+1. BoxDecomposition splits the cloud into parts (``boxdecomp``, volumes against the root).
+2. Fitting: every part is fitted with every primitive in ``shapes``, with a threshold of
+   ``threshold_fraction`` of the part's diagonal; all parts of one primitive go through
+   one ``fit_batch`` call.
+3. Evaluation: each candidate scores the mean distance of *all* the part's points (of a
+   hollow part, its outside) to its closed, bounded surface; the part's own bounding box
+   competes too; among the plausible candidates the lowest wins.
 4. The object is the set of winning primitives (``Decomposition``).
 
-Departure from the thesis: reassignment (``reassign`` rounds, after step 3). Box cuts
-are planes, so a leaf can keep a sliver of its neighbour, and a primitive fitted to a
-leaf is bounded by the leaf's points only. Measured on the built-in lamp (base, post,
-shade, ball) with the leaves as the thesis leaves them: the base's leaf kept the foot
-of the post and lost to its MVBB (0.039 m thick instead of 0.02), the post came out
-6-10 % short, and the ball's leaf, part of it shade, was won by its MVBB. So every
-point goes to the nearest primitive and the parts whose points changed are fitted and
-evaluated again, until nothing changes (at most ``reassign`` rounds). Two choices make
-that converge on the primitives: ownership is judged with each part's best *fitted*
-primitive, not its MVBB (a box around a mixed part is near all of its points and keeps
-the sliver), and cylinders and cones are first re-bounded on the inliers of their
-unbounded surface in the whole cloud (the post grows back through the shade's leaf in
-one round instead of halving the gap each round). A part left with almost no points is
-merged into the others, and parts of one kind that have come to overlap are merged
-(``_merge``: the YCB soup can, cut into three slabs, became three coaxial cylinders).
-With it the lamp's four parts are within 1.5 % of the truth.
+Departures from the thesis, each for an object the thesis's rule got wrong:
 
-Departures for objects the one-sided score misjudges (GraspIt!'s hollow mug: body
-cylinder r 50 h 100 with inner wall, lip and rounded bottom, and a loop handle; before
-them it came out as a cone of half-angle 57 deg and base radius 83 mm over the handle's
-slab, a box wedged between the walls and a body cylinder r 50.8 h 86):
+- Reassignment (``reassign`` rounds after step 3): every point goes to the nearest
+  part's best fitted primitive (cylinders and cones first grown along their surface,
+  ``Model.axial_bounds``), parts that changed are fitted again, parts left tiny or of one
+  kind and overlapping are merged; a round is kept only if it merges parts or lowers
+  ``overall_distance``. Box cuts are planes, so a leaf keeps slivers of its neighbours.
+- Plausibility (``MAX_OVERSHOOT``): a candidate reaching far out of the object's bounding
+  box cannot win, nor (``OWNER_SLACK``) claim points; the mean distance cannot see a
+  surface far from the points.
+- Hollow parts (``HOLLOW``, ``HOLLOW_DEPTH``): a part with an inner wall is fitted and
+  judged on its outside; one-sided, a surface midway between two walls is nearest.
 
-- Plausibility (``MAX_OVERSHOOT``). A fitted candidate whose bounded surface reaches
-  out of the object's bounding box (the root MVBB) by more than 5 % of its diagonal
-  cannot win its part; among the rest the lowest mean distance wins, as in the thesis.
-  The mean distance cannot see a surface far from the points: the mug's cone reached
-  17-21 % out. In the final parts of the seven real models of the benchmark the
-  winners reach at most 5 % out and the candidates turned away 6 % (a box on Arizona's
-  base) to several diagonals, so 5 % is a line through a continuum, not a gap. The
-  part's own MVBB is always allowed (a part's tilted box need not lie in the root's:
-  up to 12 % out on the mug). The same gate applies to ownership in reassignment (else
-  the mug's handle leaf was owned by a cylinder r 84 reaching 20 % out and then a cone,
-  grown over the body, and the mug ended as one part), except where
-  the best plausible candidate is more than ``OWNER_SLACK`` (2) times as far from its
-  part as the part's MVBB, which is then no better a guide: there the lowest mean
-  distance owns, as before (the lamp's and Arizona's base leaves, whose fitted boxes
-  are 17x and 11x their MVBB's distance; without the exception the lamp's post came
-  out 8 % long and Arizona's base 10.8 mm thick instead of 5; the mug's handle leaf,
-  1.1x, keeps its plausible box).
-- Hollow parts (``HOLLOW``, ``_outside``). A part at least 25 % of whose points lie more
-  than two thresholds inside its convex hull (an inner wall) is fitted and judged on
-  the rest, its outside. On all its points the mug's body was won by a box wedged
-  between the walls (4.98 mm) over the cylinder RANSAC found, the inner wall (r 41.6,
-  9.16 mm): one-sided, a surface midway between two walls is nearest. On its outside
-  a cylinder r 50.2 wins (3.25 mm). The mug's body has 32-35 % of its points inside;
-  the built-in objects' parts 0 %, but for two of the lamp's leaves at 25 % (the
-  shade's and the ball's, where the cone and the sphere still win).
-- BoxDecomposition takes a clearly narrower cut among near ties, so the mug's handle
-  becomes a part (``jaxfit.boxdecomp``).
-- A reassignment round is kept only if it merges parts or lowers the mean distance of
-  all the object's points to their parts' primitives (``overall_distance``, the PSDA's
-  own measure over the whole object); otherwise the previous parts stand. On the mug the
-  leaves were already right (body cylinder and handle box, 3.70 mm overall) and, with
-  some keys, a round let the handle's grown primitive take 3,500 body points (4.12 mm),
-  and the next one turned the handle's part into the inner wall: with the guard keys
-  0-3 all give the body cylinder (r 50.7-51.0) and the handle.
-
-Result on the mug (``python -m benchmarks.decomposition``, gain 0.96, 20,000 points):
-two parts, the body a cylinder r 50.4 h 89, axis 7 deg from y (truth r 50, h 100: the
-lip is set in by 6 mm and the bottom is rounded, so the outer wall's cylinder stops
-short) and the handle its bounding box, 78 x 20 x 20 mm. The Arizona object, the phone,
-the soup can and the cracker box come out as before; the duck and Homer change (5 and 4 parts
-instead of 4 and 2, without the oversized cone the duck had). Measured and not kept:
-the fraction of a candidate's surface with points near it (coverage) does not tell the
-mug's wedged box (72 % covered) from the body cylinder (86 %); merging a part into
-another whose primitive holds 70 % of its points gave the mug a body cylinder but left
-the handle in a box with a wedge of the body.
+Measurements and the cases behind each departure: docs/decomposition.md.
 """
 
 from __future__ import annotations
@@ -95,6 +44,7 @@ from ..shapes import Box, Model
 from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import hull_depth
 
+#: The primitives tried on every part by default: the thesis's four.
 SHAPES = ("sphere", "cylinder", "cone", "box")
 #: Part threshold: this fraction of the diagonal of the part's bounding box. Wider than
 #: for a single fit, as in the thesis: a part is only approximately a primitive.
@@ -144,7 +94,7 @@ class Part:
     indices : (M,) indices into ``Decomposition.points`` (the leaf's points, or with
         ``reassign`` the points nearest to this part's primitive).
     box : the minimum-volume bounding box of those points.
-    kind : the primitive type of the winner ("sphere", "cylinder", "cone" or "box").
+    kind : the winning primitive's name (``Model.name``; "box" when the MVBB wins).
     winner : the winning candidate: ``kind``, or "mvbb" when the bounding box won.
     model : the winning primitive (a ``Box`` when the MVBB wins).
     mean_distance : its mean distance to the part's points.
@@ -340,9 +290,9 @@ def _merge(points, groups, kinds, root: Box, gain: float):
     BoxDecomposition's split must save (``(1 - gain)`` of the root's volume). So the
     three slabs the box cuts make of a soup can, each of which then fits the whole can,
     become one part again. Parts of different kinds stay apart (they are different
-    primitives, even if they cross), and so do neighbours that merely touch: merging every
-    pair whose split saves too little (the plain inverse of the split test) left the
-    Inventor duck as 2 parts, one a cone longer than the duck, and Homer as 2 parts."""
+    primitives, even if they cross), and so do neighbours that merely touch (the plain
+    inverse of the split test merged too much: docs/decomposition.md). ``groups`` are
+    index arrays into ``points`` (N, 3), ``kinds`` their primitives' names."""
     volume = functools.partial(box_volume, floor=volume_floor(root))
     need = (1.0 - gain) * volume(root)
     groups = list(groups)

@@ -1,16 +1,18 @@
 """The thesis's evaluation (THESIS.md section 4) as a reproducible suite.
 
 For every (shape, scenario, level) the suite makes ``repeats`` clouds with fixed seeds
-(``jaxfit.scenarios``), fits them all in one ``fit_batch`` call, and measures the errors
-of ``jaxfit.measures`` plus runtime and inlier precision/recall. ``run`` returns one row
-per fit; ``write`` turns rows into ``runs.csv``, ``summary.md`` (means and medians per
-level: the thesis's tables) and one PNG per primitive (each measure against the noise
-level, one line per scenario: the thesis's figures).
+(``scenarios``), fits them all in one ``fit_batch`` call, and measures the errors of
+``measures`` (each primitive's ``error_measures``) plus runtime and inlier
+precision/recall. ``run`` returns one row (a dict) per fit; ``write`` turns rows into
+``runs.csv``, ``summary.md`` (means and medians per level: the thesis's tables) and one
+PNG per primitive (each shown measure against the noise level, one line per scenario:
+the thesis's figures).
 
 Thresholds: the thesis fixed one per test. Here a fit uses ``threshold = max(0.01, sc) *
 size`` with ``size = scenarios.shape_size(model)`` and sc the SN scattering factor (0 for
 RN): 1 % of the shape's size on exact surfaces, and the noise amplitude (what a user who
-knows the sensor would set) under surface noise.
+knows the sensor would set) under surface noise. The measures and results:
+docs/evaluation.md.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ def threshold_for(case: scenarios.Scenario) -> float:
     return max(0.01, sc) * case.size
 
 
+#: What an oriented estimator reads in ``run``: normals estimated from the points, or
+#: the scenario's true ones.
 NORMALS = ("estimated", "true")
 
 

@@ -44,6 +44,8 @@ from ..shapes import REGISTRY, Cut, Model
 from ..shapes import _geometry as g
 from .synthetic import random_model
 
+#: The thesis's scenarios: random noise, surface noise, each on a complete or an
+#: incomplete (IM) model.
 SCENARIOS = ("RN", "RNIM", "SN", "SNIM")
 #: Outlier share of all points, the thesis's RN / RNIM levels.
 RN_LEVELS = (0.10, 0.20, 0.30, 0.40, 0.50, 0.60)

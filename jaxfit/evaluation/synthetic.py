@@ -1,6 +1,9 @@
-"""Synthetic clouds of known primitives: the demo, the tests and the benchmarks use them.
+"""Synthetic clouds (N, 3) of known primitives: random models (``random_model``), noisy
+clouds around them, composite objects (``composite``) and floor scenes (``scene``). The
+demo, the tests and the benchmarks use them, so each is reproducible from its seed.
 
-Every random choice comes from ``numpy.random.default_rng(seed)``.
+Every random choice comes from ``numpy.random.default_rng(seed)``; what each primitive
+contributes (its proportions, sampled surfaces, areas) comes from its class.
 """
 
 from __future__ import annotations
@@ -89,6 +92,7 @@ def _composites():
     }
 
 
+#: Names of the built-in composite objects (``composite``; the CLI's ``demo --object``).
 COMPOSITES = tuple(_composites())
 
 

@@ -1,6 +1,7 @@
-"""Points and meshes in and out: point and mesh files (``points``), GraspIt!'s Open
-Inventor models (``iv``), and headless previews (``preview``). Importing this package
-loads neither jax nor trimesh: the CLI reads a ``.npy`` without them."""
+"""Points and meshes in and out: point and mesh files as (N, 3) float64 clouds
+(``points``), GraspIt!'s Open Inventor models (``iv``), and headless previews
+(``preview``). None of them uses jax; trimesh and matplotlib are imported only where a
+mesh is read or a picture drawn (``import jaxfit`` itself loads jax)."""
 
 from .points import SUPPORTED_EXTENSIONS, LoadError, load_points, sample_surface
 

@@ -1,6 +1,7 @@
-"""Loading point clouds from mesh files, text point files and ``.npy`` arrays.
+"""Loading point clouds (N, 3) float64 from mesh files, text point files and ``.npy``
+arrays.
 
-Deliberately free of jax so that importing it (e.g. from the CLI) stays cheap.
+Free of jax, and trimesh (slow to import) is imported only when a mesh is read.
 """
 
 from __future__ import annotations

@@ -1,4 +1,6 @@
-"""The five primitives. Each module holds one model class; ``REGISTRY`` maps names to them."""
+"""The primitives: one model class per module, registered in ``REGISTRY`` (name -> class)
+when its module is imported here. The rest of jaxfit reads what it needs about a primitive
+from its class (``Model``; docs/shapes.md), so a new one is its file plus one line here."""
 
 from ._base import REGISTRY, Cut, Model
 from .box import Box

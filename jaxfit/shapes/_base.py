@@ -139,9 +139,8 @@ class Model:
     default_estimator: ClassVar[str] = "thesis"
     #: LO-RANSAC refines this many of a batch's best hypotheses and keeps the best
     #: result: on noisy cones the single best raw hypothesis often sits in the wrong
-    #: basin of the MSAC cost (see the README's estimator comparison; with 1 or 2 starts
-    #: the cone's mean axis error at SNIM was 2.8-9.6 deg). Each start costs a whole
-    #: refinement, most of fit_batch's time on small clouds.
+    #: basin of the MSAC cost. Each start costs a whole refinement, most of fit_batch's
+    #: time on small clouds (measurements: docs/shapes.md).
     lo_starts: ClassVar[int] = 4
     #: field name -> (trailing shape, kind), the kind saying how it maps under scaling.
     field_specs: ClassVar[dict[str, tuple[tuple[int, ...], str]]]

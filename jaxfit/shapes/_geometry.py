@@ -89,8 +89,8 @@ def frame(axis):
 
 
 def cross3(a, b):
-    """Cross product of two 3-vectors (NumPy): ``np.cross``'s general-axis machinery cost
-    ~20 us a call, several times per fitted model."""
+    """Cross product (3,) of two 3-vectors (NumPy), without ``np.cross``'s general-axis
+    machinery, which costs more than the arithmetic (docs/shapes.md)."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
                      a[0] * b[1] - a[1] * b[0]])
 
@@ -105,16 +105,16 @@ def transform(rotation, translation):
 
 def column_bounds(points):
     """(lo (3,), hi (3,)) of points (N, 3), one column at a time: NumPy's axis-0
-    reductions over (N, 3) run an inner loop of length 3 and were 6x slower (10k points:
-    0.5 ms, a tenth of a whole fit)."""
+    reductions over (N, 3) run an inner loop of length 3 and are several times slower
+    (docs/shapes.md)."""
     lo = np.array([points[:, i].min() for i in range(3)])
     return lo, np.array([points[:, i].max() for i in range(3)])
 
 
 def median(values):
-    """np.median of a 1-D array, by one partition: np.median's general-axis machinery cost
-    ~25 us a call, and a fitted box takes ~20 of them (bit-identical: the mean of the two
-    middle values is their half-sum)."""
+    """np.median () of a 1-D array (N,) by one partition, without np.median's general-axis
+    machinery (docs/shapes.md); bit-identical: the mean of the two middle values is their
+    half-sum. NaN for an empty array."""
     v = np.asarray(values, dtype=np.float64)
     if v.size == 0:
         return np.nan
@@ -128,7 +128,7 @@ def median(values):
 def row_norms(v):
     """Euclidean norms (N,) of the rows of v (N, 3), column by column: NumPy's
     ``norm(axis=1)`` and ``sum(axis=1)`` over (N, 3) run an inner loop of length 3 and
-    were ~5x slower, a visible part of a fit's host time."""
+    are several times slower (docs/shapes.md)."""
     return np.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2 + v[:, 2] ** 2)
 
 

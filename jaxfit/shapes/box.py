@@ -9,11 +9,8 @@ where most points lie. After the loop the three parallel faces are found from th
 histograms of the points that are not inliers of the first three.
 
 The oriented estimator needs p1 and p2 on any two non-parallel faces (the thesis's needs
-three points on one face and two on an adjacent one): on the thesis's suite with
-estimated normals it needs 256 hypotheses where the thesis's takes 5,000-7,500 at 60 %
-outliers, at about the same accuracy (20 clouds per setting, medians: axis 0.12 / 0.16
-deg at RNIM / RN 60 %, thesis 0.15 / 0.12; 0.55 / 1.35 deg at SN 0.05 / 0.1, thesis
-0.67 / 1.69; worst side errors alike).
+three points on one face and two on an adjacent one), so it needs far fewer hypotheses
+at about the same accuracy (measurements: docs/shapes.md).
 
 theta = (n1 (3), n2 (3), n3 (3), D1, D2, D3) with faces n_i . p = D_i.
 """

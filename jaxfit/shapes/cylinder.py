@@ -2,7 +2,8 @@
 direction, its circumcircle the axis position and the radius, THESIS.md section 3), or two
 points with normals (the axis is perpendicular to both normals; across it, the two normal
 lines meet on the axis). The oriented one is the default: it does not need its points on
-one cross-section, so it needs ~100x fewer hypotheses (see the README's comparison).
+one cross-section, so it needs far fewer hypotheses (256 against the thesis's floor of
+8192; docs/shapes.md).
 
 theta = (point on axis (3), unit axis (3), radius); the height and centre are fixed after
 the loop from the inliers' projections on the axis.

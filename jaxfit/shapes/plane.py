@@ -60,8 +60,7 @@ class Plane(Model):
     @staticmethod
     def least_squares(points, weights):
         # Through the weighted centroid, normal along the scatter's least direction: the
-        # least-squares plane in one step, where LM took several (refinement of a
-        # 10k-point plane: see ransac.refine_theta).
+        # least-squares plane in one step, where Levenberg-Marquardt takes several.
         centroid = weights @ points / jnp.sum(weights)
         spread = (points - centroid) * jnp.sqrt(weights)[:, None]
         normal = jnp.linalg.eigh(spread.T @ spread)[1][:, 0]
@@ -73,8 +72,8 @@ class Plane(Model):
         offset = theta[3] * (1.0 if normal @ theta[:3] > 0 else -1.0)
         # The patch: around the inliers' median, out to where they thin out (strays in
         # the plane's slab far from the patch are sparse and are left outside). In the
-        # plane's own 2-D coordinates: two 1-D medians instead of a gather of (M, 3) rows
-        # and three (this took 1.2 ms of a 4-5 ms fit of 10k points before).
+        # plane's own 2-D coordinates: two 1-D medians, not a gather of (M, 3) rows and
+        # three (docs/shapes.md).
         in_plane = g.frame(normal)[:, :2]  # (3, 2)
         u, v = (points @ in_plane[:, i] for i in range(2))
         u, v = u[inliers], v[inliers]

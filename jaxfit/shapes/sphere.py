@@ -34,13 +34,8 @@ class Sphere(Model):
     oriented_sample_size: ClassVar[int] = 2
     radius_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 4
-    # The MSAC cost of a sphere has one basin near the truth: refining only the best
-    # hypothesis was as accurate as four starts (thesis suite, 20 clouds per level and
-    # scenario: median, 90th-percentile and worst centre and radius errors within 0.5 %
-    # of each other) at a quarter of the refinement. With the oriented estimator on
-    # estimated normals (not the default) refinement stops a little further from exact
-    # surfaces (median centre error at RNIM 50 %: 1.8e-4 -> 3.9e-4 of R) and closer
-    # under noise (SN 0.1: 3.7e-3 -> 2.8e-3); benchmarks/results/estimators.md.
+    # The MSAC cost of a sphere has one basin near the truth: one start is as accurate
+    # as four at a quarter of the refinement (measurements: docs/shapes.md).
     lo_starts: ClassVar[int] = 1
     field_specs: ClassVar = {"center": ((3,), _POINT), "radius": ((), _LENGTH)}
 
