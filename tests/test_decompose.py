@@ -25,6 +25,7 @@ def decomposed():
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", OBJECTS)
 def test_one_part_per_primitive_with_the_right_type(decomposed, name):
     result, models, labels = decomposed[name]
@@ -39,6 +40,7 @@ def test_one_part_per_primitive_with_the_right_type(decomposed, name):
         assert np.mean(labels[part.indices] == models.index(model)) > 0.95
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("truth", [Cylinder(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.033, 0.1),
                                    Sphere(np.zeros(3), 0.05)], ids=["cylinder", "sphere"])
 def test_one_primitive_sliced_by_the_boxes_is_merged_back(truth):
@@ -53,6 +55,7 @@ def test_one_primitive_sliced_by_the_boxes_is_merged_back(truth):
     assert matches(result.parts[0].model, truth, 0.02), result.parts[0].model
 
 
+@pytest.mark.slow
 def test_every_candidate_is_kept_and_the_lowest_wins(decomposed):
     result, _, _ = decomposed["mallet"]
     for part in result.parts:
@@ -66,6 +69,7 @@ def test_every_candidate_is_kept_and_the_lowest_wins(decomposed):
     assert np.array_equal(np.sort(covered), np.arange(len(result.points)))
 
 
+@pytest.mark.slow
 def test_save_writes_json_glb_and_preview(decomposed, tmp_path):
     result, _, _ = decomposed["lollipop"]
     folder = result.save(tmp_path / "out")
@@ -95,6 +99,7 @@ def test_sources_and_errors(tmp_path):
         decompose(mesh, shapes=("torus",))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key", [0, 1])
 def test_graspit_hollow_mug_is_a_body_cylinder_and_a_handle(data_dir, key):
     # mug.iv: a hollow mug (inner and outer wall, a lip, a rounded bottom) with a loop

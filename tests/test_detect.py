@@ -31,6 +31,7 @@ def _match(labels, models, result):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "objects"), SCENES)
 def test_every_primitive_is_recovered(seed, objects):
     points, models, labels = scene(seed, objects=objects, count=3000)

@@ -330,6 +330,7 @@ def test_refinement_reaches_the_least_squares_fit(name):
     assert axis_angle_deg(direction(case.model), best[unit:unit + 3]) > 0.05  # not the truth
 
 
+@pytest.mark.slow
 def test_fit_batch_shards_clouds_over_forced_host_devices():
     # Four CPU devices exist only in a fresh process started with the flag.
     code = (

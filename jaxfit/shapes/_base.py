@@ -72,7 +72,6 @@ SLOPE_STEP = 1e-6
 #: of ``Model.field_specs``): a point scales and shifts, a length scales, a direction or
 #: an angle stays.
 POINT, LENGTH, INVARIANT = "point", "length", "invariant"
-_POINT, _LENGTH, _INVARIANT = POINT, LENGTH, INVARIANT
 
 
 @dataclasses.dataclass(frozen=True)
@@ -305,9 +304,9 @@ class Model:
         changes = {}
         for field, (_, kind) in self.field_specs.items():
             value = getattr(self, field)
-            if value is None or kind == _INVARIANT:
+            if value is None or kind == INVARIANT:
                 continue
-            changes[field] = value * scale + (shift if kind == _POINT else 0.0)
+            changes[field] = value * scale + (shift if kind == POINT else 0.0)
         return dataclasses.replace(self, **changes)
 
     def _array(self, field):

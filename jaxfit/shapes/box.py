@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, as_points, register
+from ._base import INVARIANT, LENGTH, POINT, Cut, Model, as_points, register
 
 #: Bins of the in-loop histogram over [-1, 1], the range of a normalised cloud.
 HISTOGRAM_BINS = 128
@@ -83,9 +83,9 @@ class Box(Model):
     default_estimator: ClassVar[str] = "oriented"
     num_params: ClassVar[int] = 12
     field_specs: ClassVar = {
-        "center": ((3,), _POINT),
-        "rotation": ((3, 3), _INVARIANT),
-        "extents": ((3,), _LENGTH),
+        "center": ((3,), POINT),
+        "rotation": ((3, 3), INVARIANT),
+        "extents": ((3,), LENGTH),
     }
 
     @staticmethod
@@ -149,6 +149,12 @@ class Box(Model):
         rotation = np.stack([rotation[0], rotation[1], g.cross3(rotation[0], rotation[1])], 1)
         middle = normals.T @ (0.5 * (near + far))
         return cls(middle, rotation, np.abs(far - near))
+
+    def theta(self):
+        """The hypothesis of the three faces on the near side of each axis (``residual``
+        measures all six)."""
+        rot, center = self._array("rotation"), self._array("center")
+        return np.concatenate([rot.T.ravel(), rot.T @ center - 0.5 * self._array("extents")])
 
     def residual(self, points):
         local = (as_points(points) - self._array("center")) @ self._array("rotation")

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, as_points, register
+from ._base import INVARIANT, LENGTH, POINT, Cut, Model, as_points, register
 
 # Half-angles this close to 0 or 90 degrees are a cylinder or a plane, not a cone.
 MIN_ANGLE = 1e-3
@@ -52,10 +52,10 @@ class Cone(Model):
     num_params: ClassVar[int] = 7
     min_hypotheses: ClassVar[int] = 16384  # see Model.min_hypotheses
     field_specs: ClassVar = {
-        "apex": ((3,), _POINT),
-        "axis": ((3,), _INVARIANT),
-        "half_angle": ((), _INVARIANT),
-        "height": ((), _LENGTH),
+        "apex": ((3,), POINT),
+        "axis": ((3,), INVARIANT),
+        "half_angle": ((), INVARIANT),
+        "height": ((), LENGTH),
     }
 
     @staticmethod

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, as_points, register
+from ._base import INVARIANT, LENGTH, POINT, Cut, Model, as_points, register
 
 
 @register
@@ -47,10 +47,10 @@ class Cylinder(Model):
     num_params: ClassVar[int] = 7
     min_hypotheses: ClassVar[int] = 8192  # see Model.min_hypotheses
     field_specs: ClassVar = {
-        "center": ((3,), _POINT),
-        "axis": ((3,), _INVARIANT),
-        "radius": ((), _LENGTH),
-        "height": ((), _LENGTH),
+        "center": ((3,), POINT),
+        "axis": ((3,), INVARIANT),
+        "radius": ((), LENGTH),
+        "height": ((), LENGTH),
     }
 
     @staticmethod

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _INVARIANT, _LENGTH, _POINT, Cut, Model, register
+from ._base import INVARIANT, LENGTH, POINT, Cut, Model, register
 
 
 @register
@@ -37,10 +37,10 @@ class Plane(Model):
     axis_index: ClassVar[int] = 0  # the normal
     num_params: ClassVar[int] = 4
     field_specs: ClassVar = {
-        "normal": ((3,), _INVARIANT),
-        "offset": ((), _INVARIANT),  # handled in rescaled()
-        "center": ((3,), _POINT),
-        "radius": ((), _LENGTH),
+        "normal": ((3,), INVARIANT),
+        "offset": ((), INVARIANT),  # handled in rescaled()
+        "center": ((3,), POINT),
+        "radius": ((), LENGTH),
     }
 
     @staticmethod

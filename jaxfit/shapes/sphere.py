@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import _LENGTH, _POINT, Cut, Model, register
+from ._base import LENGTH, POINT, Cut, Model, register
 
 
 @register
@@ -37,7 +37,7 @@ class Sphere(Model):
     # The MSAC cost of a sphere has one basin near the truth: one start is as accurate
     # as four at a quarter of the refinement (measurements: docs/shapes.md).
     lo_starts: ClassVar[int] = 1
-    field_specs: ClassVar = {"center": ((3,), _POINT), "radius": ((), _LENGTH)}
+    field_specs: ClassVar = {"center": ((3,), POINT), "radius": ((), LENGTH)}
 
     @staticmethod
     def estimate(sample, support):
