@@ -58,6 +58,8 @@ def test_unknown_or_wrong_options_are_named():
         jaxfit.fit(POINTS, "sphere", options={"confidence": 0.9})
     with pytest.raises(TypeError, match="scorer must be a jaxfit Scorer"):
         jaxfit.fit(POINTS, "sphere", scorer="msac")
+    with pytest.raises(TypeError, match="must be hashable"):
+        jaxfit.fit(POINTS, "sphere", scorer=MutableScorer())
     with pytest.raises(ValueError, match="unknown estimator"):
         FitOptions(estimator="magic").check(Sphere)
     with pytest.raises(ValueError, match="min_hypotheses must be a non-negative integer"):
@@ -108,6 +110,19 @@ class RansacScorer(Scorer):
 
     def loss(self, r2, t2):
         return jnp.where(r2 < t2, 0.0, t2)
+
+    def inlier(self, r2, t2):
+        return r2 < t2
+
+
+@dataclasses.dataclass
+class MutableScorer(Scorer):
+    """Not frozen: unhashable, so it cannot be a static argument."""
+
+    scale: float = 1.0
+
+    def loss(self, r2, t2):
+        return jnp.minimum(r2, t2) * self.scale
 
     def inlier(self, r2, t2):
         return r2 < t2

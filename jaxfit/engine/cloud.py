@@ -67,7 +67,7 @@ class Cloud:
     bounds: Bounds  # the user's bounds, in the cloud's units
     wanted: np.ndarray | None = None  # indices whose normals are still to be estimated
 
-    @property
+    @functools.cached_property
     def gated(self) -> bool:
         return self.bounds.gated
 

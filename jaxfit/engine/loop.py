@@ -63,7 +63,7 @@ def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed
         "threshold": np.asarray([clouds[i].threshold / clouds[i].scale for i in order], dtype),
         "bounds": Bounds.stack([clouds[i].unit_bounds() for i in order], dtype),
     }
-    every = jax.tree.map(put, host)
+    every = host if len(devices) == 1 else jax.tree.map(put, host)
 
     def on(slots_of):
         """The per-slot arrays for the rows ``slots_of`` (None: every slot), placed."""

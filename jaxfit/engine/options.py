@@ -9,6 +9,7 @@ validates again (COLMAP's ``RANSACOptions::Check``).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import numbers
 
 import jax
@@ -38,16 +39,26 @@ class Bounds:
     normal_cos : () least |cos| between a point's normal and the surface's for the point
         to be an inlier (``NO_GATE``: no gate).
 
-    Every field may carry leading axes (one row per cloud in the host loop); the kernels
-    see one cloud's scalars.
+    They are read by name; they are kept as one array ``values`` (..., 7) in that order,
+    so that a kernel call passes one argument, not five (each array argument of a jitted
+    call costs a transfer; five made a 500-point fit ~10 % slower). ``values`` may carry
+    leading axes (one row per cloud in the host loop); the kernels see one cloud's.
     """
 
-    radius_low: jax.Array | np.ndarray | float = 0.0
-    radius_high: jax.Array | np.ndarray | float = np.inf
-    axis: jax.Array | np.ndarray = dataclasses.field(
-        default_factory=lambda: np.array([0.0, 0.0, 1.0]))
-    axis_cos: jax.Array | np.ndarray | float = 0.0
-    normal_cos: jax.Array | np.ndarray | float = NO_GATE
+    values: jax.Array | np.ndarray
+
+    @classmethod
+    def make(cls, radius_low=0.0, radius_high=np.inf, axis=(0.0, 0.0, 1.0), axis_cos=0.0,
+             normal_cos=NO_GATE) -> Bounds:
+        """Bounds from named values (unchecked: see ``of``)."""
+        return cls(np.concatenate([[radius_low, radius_high], np.asarray(axis, np.float64),
+                                   [axis_cos, normal_cos]]))
+
+    radius_low = property(lambda self: self.values[..., 0])
+    radius_high = property(lambda self: self.values[..., 1])
+    axis = property(lambda self: self.values[..., 2:5])
+    axis_cos = property(lambda self: self.values[..., 5])
+    normal_cos = property(lambda self: self.values[..., 6])
 
     @classmethod
     def of(cls, model: type[Model], radius_range=None, axis_prior=None,
@@ -87,7 +98,7 @@ class Bounds:
                 raise ValueError(f"axis_prior angle must be in (0, 90] degrees, got {angle!r}")
             axis = direction / length
             axis_cos = float(np.cos(np.radians(float(angle))))
-        return cls(low, high, axis, axis_cos, normal_cos)
+        return cls.make(low, high, axis, axis_cos, normal_cos)
 
     @property
     def gated(self) -> bool:
@@ -96,13 +107,14 @@ class Bounds:
 
     def scaled(self, scale: float) -> Bounds:
         """The bounds for points divided by ``scale``: radii scale, directions do not."""
-        return dataclasses.replace(self, radius_low=self.radius_low / scale,
-                                   radius_high=self.radius_high / scale)
+        values = np.array(self.values, np.float64)
+        values[..., :2] /= scale
+        return Bounds(values)
 
     @staticmethod
     def stack(rows: list[Bounds], dtype) -> Bounds:
-        """One Bounds whose fields have a leading axis over ``rows``, as ``dtype``."""
-        return jax.tree.map(lambda *leaves: np.asarray(leaves, dtype), *rows)
+        """One Bounds with a leading axis over ``rows``, as ``dtype``."""
+        return Bounds(np.stack([row.values for row in rows]).astype(dtype))
 
     def admits(self, model: type[Model], theta):
         """Whether hypothesis theta (P,) honours the radius and axis bounds (JAX; never
@@ -185,7 +197,16 @@ class FitOptions:
         return dataclasses.replace(base, **settings) if settings else base
 
     def check(self, shape: type[Model]) -> FitOptions:
-        """The checked options for fitting ``shape`` (see the class docstring)."""
+        """The checked options for fitting ``shape`` (see the class docstring); kept for
+        hashable options (a small fit spent ~15 us checking the same ones again)."""
+        try:
+            return _checked(self, shape)
+        except TypeError as err:  # unhashable settings (lists, arrays): check them now
+            if "unhashable" not in str(err):
+                raise
+            return self._check(shape)
+
+    def _check(self, shape: type[Model]) -> FitOptions:
         est = shape.estimator(self.estimator)
         bounds = Bounds.of(shape, self.radius_range, self.axis_prior, self.normal_angle)
         min_hypotheses = self.min_hypotheses
@@ -200,6 +221,11 @@ class FitOptions:
             if not isinstance(stage, kind):
                 raise TypeError(f"{kind.__name__.lower()} must be a jaxfit {kind.__name__}, "
                                 f"got {stage!r}")
+            try:
+                hash(stage)
+            except TypeError:
+                raise TypeError(f"{kind.__name__.lower()} {stage!r} must be hashable (a frozen "
+                                "dataclass): the kernels take it as a static argument") from None
         return dataclasses.replace(
             self,
             confidence=_checks.probability(self.confidence, "confidence"),
@@ -209,3 +235,8 @@ class FitOptions:
             min_hypotheses=int(min_hypotheses), refine=bool(self.refine), estimator=est.name,
             bounds=bounds,
         )
+
+
+@functools.lru_cache(maxsize=256)
+def _checked(options: FitOptions, shape: type[Model]) -> FitOptions:
+    return options._check(shape)
