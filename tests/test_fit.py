@@ -373,6 +373,19 @@ def test_user_bounds_hold_before_and_after_refinement():
     assert 0 < cone.model.half_angle < np.pi / 2
 
 
+@pytest.mark.parametrize("name", ["plane", "cylinder", "cone"])
+def test_an_axis_prior_far_from_the_truth_holds_under_refinement(name):
+    """With few hypotheses inside the prior, a batch's best few include invalid ones
+    (outside it); refinement must not hand one of those back (it did: 87-89 deg from a
+    10 deg prior)."""
+    points, true, _ = demo_cloud(name, count=2000, seed=4)
+    axis = true.normal if name == "plane" else true.axis
+    prior = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    result = jaxfit.fit(points, name, axis_prior=(prior, 10), key=0)
+    fitted = result.model.normal if name == "plane" else result.model.axis
+    assert axis_angle_deg(fitted, prior) <= 10 + 1e-6
+
+
 def test_normal_gate_drops_points_whose_normals_disagree():
     from jaxfit.evaluation.scenarios import make
 

@@ -108,11 +108,15 @@ def group(clouds: int, elements: int) -> int:
     return size
 
 
-def _refine_many(cls, thetas, points, n_valid, threshold, bounds, normals=None, rows=None,
-                 refiner: LocalOptimizer = DEFAULT_REFINER, scorer: Scorer = DEFAULT_SCORER):
-    """``refiner.refine`` for each cloud's ``cls.lo_starts`` hypotheses thetas (C, S, P),
-    gated on normals (C, B, 3) if given; returns the best refined theta (C, P), its cost
-    (C,) and inlier count (C,) per cloud."""
+def _refine_many(cls, thetas, costs, points, n_valid, threshold, bounds, normals=None,
+                 rows=None, refiner: LocalOptimizer = DEFAULT_REFINER,
+                 scorer: Scorer = DEFAULT_SCORER):
+    """``refiner.refine`` for each cloud's ``cls.lo_starts`` hypotheses thetas (C, S, P)
+    with their kernel costs (C, S), gated on normals (C, B, 3) if given; returns the best
+    refined theta (C, P), its cost (C,) and inlier count (C,) per cloud. A start the
+    kernel found invalid (cost +inf: degenerate, or outside the bounds) never wins, though
+    refinement gives it a finite cost: a batch with fewer valid hypotheses than starts
+    had let an out-of-bounds one win under an axis_prior."""
 
     n_chunks = live_chunks(jnp.max(n_valid))  # one loop bound for all clouds
 
@@ -125,6 +129,7 @@ def _refine_many(cls, thetas, points, n_valid, threshold, bounds, normals=None, 
     theta, cost, count = jax.lax.map(lambda a: starts(*a),
                                      (thetas, points, n_valid, threshold, bounds, normals),
                                      batch_size=group(points.shape[0], points.shape[1] * 64))
+    cost = jnp.where(jnp.isfinite(costs), cost, jnp.inf)
     best = jnp.argmin(cost, axis=1)[:, None]
     pick = lambda a: jnp.take_along_axis(a, best.reshape(best.shape + (1,) * (a.ndim - 2)),  # noqa: E731
                                           axis=1)[:, 0]

@@ -100,9 +100,10 @@ def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed
             if polishing is not None:  # (else every slot: the kernel ran on all of them)
                 row = np.full(rows_count, -1)
                 row[where[::-1]] = np.arange(len(where))[::-1]  # first row of each slot
-                theta, a = put(np.asarray(theta)[row[polishing]]), on(polishing)
+                theta, cost = (put(np.asarray(x)[row[polishing]]) for x in (theta, cost))
+                a = on(polishing)
             theta, cost, found = refine_many(
-                cls, theta, a["points"], a["n"], a["threshold"], a["bounds"],
+                cls, theta, cost, a["points"], a["n"], a["threshold"], a["bounds"],
                 a["normals"] if gated else None, lo_rows(n_max), options.refiner,
                 options.scorer)
             where = np.arange(rows_count) if polishing is None else polishing
