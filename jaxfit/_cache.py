@@ -164,7 +164,8 @@ def _settings() -> tuple:
     """JAX's settings that change how a function traces; part of every call's signature,
     since a user may change them between calls."""
     cfg = jax.config
-    return (cfg.jax_enable_x64, cfg.jax_default_prng_impl, cfg.jax_default_matmul_precision,
+    return (cfg.jax_enable_x64, cfg.jax_default_prng_impl, cfg.jax_threefry_partitionable,
+            cfg.jax_default_matmul_precision,
             cfg.jax_numpy_dtype_promotion, cfg.jax_numpy_rank_promotion)
 
 

@@ -168,3 +168,27 @@ def test_a_broken_stored_kernel_is_exported_again(tmp_path, monkeypatch):
     again = _stored_square(tmp_path, monkeypatch, traced)
     np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
     assert len(traced) == 2 and path.stat().st_size > 100  # traced and replaced
+
+
+def test_the_random_bits_setting_gets_its_own_program(tmp_path, monkeypatch):
+    """jax_threefry_partitionable changes the bits a key gives: a program stored under one
+    setting must not serve the other (results never depend on a warm cache)."""
+    import jax
+    import numpy as np
+
+    monkeypatch.setattr(_cache, "_enabled_dir", str(tmp_path))
+
+    def bits(key):
+        return jax.random.bits(key, (8,))
+
+    key = jax.random.key(0)
+    stored = _cache.Stored(jax.jit(bits), bits)
+    setting = jax.config.jax_threefry_partitionable
+    first = np.asarray(stored(key))
+    with jax.threefry_partitionable(not setting):
+        other = np.asarray(stored(key))
+        expected = np.asarray(jax.jit(bits)(key))
+    assert not np.array_equal(first, other)
+    np.testing.assert_array_equal(other, expected)
+    assert len(exported(tmp_path)) == 2
+
