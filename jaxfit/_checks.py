@@ -92,6 +92,17 @@ def seed_of(key) -> int | None:
     return None
 
 
+def numpy_seed(key) -> int:
+    """A NumPy seed for the host-side random choices made under ``key``: a non-negative int
+    seed itself (NumPy integers too), otherwise one drawn from the key's data (a JAX key,
+    or a negative int reduced to 32 bits), so every key gives its own choices."""
+    seed = seed_of(key)
+    if seed is not None:
+        return int(key) if key >= 0 else seed
+    data = np.asarray(jax.random.key_data(prng_key(key)))
+    return int(np.random.SeedSequence(data.ravel().tolist()).generate_state(1)[0])
+
+
 def prng_key(key):
     """A JAX PRNG key from an int seed or a key (typed, or a raw uint32 pair)."""
     if (seed := seed_of(key)) is not None:

@@ -157,3 +157,18 @@ def test_parts_bounded_along_an_axis_grow_along_their_surface():
     np.testing.assert_allclose(grown.center, 0.0, atol=0.01)
     ball = Sphere(np.zeros(3), np.float64(0.1))
     assert _grown(ball, points, 0.01) is ball
+
+
+def test_every_kind_of_key_chooses_the_sampled_points():
+    """A NumPy integer is its int; JAX keys give their own points (all had given seed 0)."""
+    import jax
+    import trimesh
+
+    mesh = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
+    points = {name: decompose(mesh, num_points=1500, key=key, reassign=0).points
+              for name, key in [("int", 3), ("np", np.int64(3)), ("jax1", jax.random.key(1)),
+                                ("jax2", jax.random.key(2))]}
+    np.testing.assert_array_equal(points["int"], points["np"])
+    assert not np.array_equal(points["jax1"], points["jax2"])
+    assert not np.array_equal(points["jax1"], points["int"])
+

@@ -207,7 +207,8 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     num_points : points sampled from a mesh.
     threshold_fraction : inlier threshold of a part's fits, as a fraction of its bounding
         box's diagonal.
-    key : seed for sampling and fitting.
+    key : int seed or JAX PRNG key, for the sampling of a mesh and of large parts
+        (``_checks.numpy_seed``) and for the fits.
     reassign : rounds (at most) of giving every point to the nearest part's primitive
         (its best fitted one, cylinders and cones grown along their surface) and fitting
         the parts that changed again, so parts follow the primitives rather than the box
@@ -218,7 +219,7 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     classes = [_checks.model_class(s) for s in shapes]
     if not 0 < gain <= 1:
         raise ValueError(f"gain must be in (0, 1], got {gain!r}")
-    seed = key if isinstance(key, int) else 0
+    seed = _checks.numpy_seed(key)
     points = load_source(source, num_points=num_points, seed=seed)
     if min_points is None:
         min_points = max(30, int(0.02 * len(points)))
