@@ -247,7 +247,11 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
                       f"({time.perf_counter() - start:.2f} s)")
         rnd += 1
     if settle and found:
-        found = _settled(found, cloud, threshold, radius)
+        # Settling can leave a detection with fewer than min_inliers points (a sliver
+        # between two surfaces that each took theirs back): it is dropped, and its
+        # points stay unassigned.
+        found = [d for d in _settled(found, cloud, threshold, radius)
+                 if len(d.indices) >= min_inliers]
     taken = np.concatenate([d.indices for d in found]) if found else np.empty(0, int)
     unassigned = np.setdiff1d(np.arange(len(cloud)), taken)
     return Scene(found, unassigned, threshold, spacing, radius)

@@ -98,3 +98,19 @@ def test_bad_options_raise(kwargs, message):
 def test_bad_points_raise(points, message):
     with pytest.raises(ValueError, match=message):
         jaxfit.detect(points)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["PC21", "PC33"])
+def test_no_detection_is_smaller_than_min_inliers(data_dir, name):
+    """On the Fit4CAD scans settling had left detections of 0 and 4 points (min_inliers
+    10 and 15); none may be returned."""
+    from benchmarks.detect import load_fit4cad
+
+    points = load_fit4cad(name)[0]
+    result = jaxfit.detect(points, key=0)
+    smallest = int(np.ceil(0.01 * len(points)))  # the default min_inliers (at least)
+    assert result.shapes and min(len(d.indices) for d in result.shapes) >= smallest
+    taken = np.concatenate([d.indices for d in result.shapes] + [result.unassigned])
+    np.testing.assert_array_equal(np.sort(taken), np.arange(len(points)))
+
