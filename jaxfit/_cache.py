@@ -88,11 +88,14 @@ def wanted_dir(environ=os.environ, platform: str = sys.platform) -> Path | None:
 def unusable(path: Path) -> str | None:
     """Why ``path`` cannot hold the cache (created if missing), or None if it can.
 
-    A probe file is written because a folder can exist and still refuse writes (read-only
-    mounts, another user's folder); mkstemp gives each process its own probe name.
+    The folder must be the user's own and not writable by others (``unsafe``): jaxfit
+    runs the programs it finds there. A probe file is written because a folder can exist
+    and still refuse writes (read-only mounts); mkstemp gives each process its own probe.
     """
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if (reason := unsafe(path)) is not None:
+            return reason
         fd, probe = tempfile.mkstemp(prefix=".probe-", dir=path)
         os.close(fd)
         os.unlink(probe)
@@ -119,7 +122,7 @@ def enable(environ=os.environ) -> str | None:
         return None
     reason = unusable(path)
     if reason is not None:
-        warnings.warn(f"jaxfit: compilation cache disabled, cannot write to {path} ({reason}); "
+        warnings.warn(f"jaxfit: compilation cache disabled, cannot use {path} ({reason}); "
                       f"set {ENV_DIR} to another folder or {ENV_SWITCH}=0 to silence this",
                       RuntimeWarning, stacklevel=2)
         return None
@@ -241,15 +244,18 @@ class Stored:
         signature = (static, str(tree), shapes, _settings())
         kernel = self.kernels.get(signature)
         if kernel is None:
-            kernel = self.kernels[signature] = self._kernel(signature, args, kwargs)
+            kernel = self.kernels[signature] = self._kernel(signature, args, kwargs, leaves,
+                                                            tree)
         if kernel is self.jitted:
             return self.jitted(*args, **kwargs)
         return kernel(*dyn_args, **dyn_kwargs)
 
-    def _kernel(self, signature, args, kwargs):
+    def _kernel(self, signature, args, kwargs, leaves, tree):
         """The jitted call of the exported program for one signature: read from the
-        folder, or exported (traced and lowered) now and written there; ``self.jitted``
-        where JAX cannot export it."""
+        folder (only a file of this user's that no one else can write, holding a program
+        of this call's arguments), or exported (traced and lowered) now and written there;
+        ``self.jitted`` where JAX cannot export it. ``leaves`` and ``tree``: the call's
+        dynamic arguments, flattened."""
         from jax import export
 
         key = repr((self.name, sorted(self.options.items()), _environment(), signature))
@@ -257,8 +263,13 @@ class Stored:
         path = (Path(_enabled_dir) / EXPORTED / _source_digest()[:16]
                 / f"{hashlib.sha256(key.encode()).hexdigest()}.jaxexport")
         try:
+            if (reason := unsafe(path)) is not None:
+                raise OSError(reason)
             exported = export.deserialize(bytearray(path.read_bytes()))
-        except Exception:  # missing, partial or unreadable: export it (again)
+            if not _takes(exported, leaves, tree):
+                raise ValueError("a program of other arguments")
+        except Exception:  # missing, partial, unreadable, not ours or not this call's:
+            # export it (again) and replace the file
             try:
                 exported = export.export(self.jitted)(*args, **kwargs)
                 blob = exported.serialize()
@@ -267,6 +278,37 @@ class Stored:
             _write(path, blob)
         options = {"compiler_options": self.options} if self.options else {}
         return jax.jit(exported.call, **options)
+
+
+def _takes(exported, leaves, tree) -> bool:
+    """Whether an exported program takes these arguments: the same tree of dynamic
+    arguments, shapes and dtypes, on one device of this backend (a file copied over
+    another's name fails here instead of in the call, as a user error)."""
+    if exported.in_tree != tree or len(exported.in_avals) != len(leaves):
+        return False
+    if exported.nr_devices != 1 or jax.default_backend() not in exported.platforms:
+        return False
+    return all(tuple(aval.shape) == tuple(np.shape(leaf))
+               and aval.dtype == jax.numpy.result_type(leaf)
+               for aval, leaf in zip(exported.in_avals, leaves, strict=True))
+
+
+def unsafe(path: Path) -> str | None:
+    """Why the file or folder ``path`` may not be trusted, or None: on POSIX it must be
+    the current user's and not writable by group or others (as OpenSSH treats key files),
+    since jaxfit runs the programs it reads from there."""
+    if not hasattr(os, "getuid"):
+        return None
+    try:
+        st = path.stat()
+    except OSError as err:
+        return f"{type(err).__name__}: {err}"
+    if st.st_uid != os.getuid():
+        return f"{path} belongs to uid {st.st_uid}, not to this user ({os.getuid()})"
+    if st.st_mode & 0o022:
+        return (f"{path} is writable by group or others (mode {st.st_mode & 0o777:o}): "
+                "anyone could plant programs that jaxfit would run; chmod go-w it")
+    return None
 
 
 def stored_jit(fn, static_argnames=(), options=None) -> Stored:

@@ -192,3 +192,35 @@ def test_the_random_bits_setting_gets_its_own_program(tmp_path, monkeypatch):
     np.testing.assert_array_equal(other, expected)
     assert len(exported(tmp_path)) == 2
 
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid"), reason="POSIX ownership and modes")
+def test_a_folder_others_can_write_is_not_used(tmp_path, monkeypatch):
+    """jaxfit runs the programs it reads from its folder: one that group or others can
+    write (where anyone could plant a program) is refused with one warning."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    assert "writable by group or others" in _cache.unusable(shared)
+    env = {_cache.ENV_DIR: str(shared)}
+    monkeypatch.setattr(_cache, "_jax_configured", lambda: False)  # as in a new process
+    with pytest.warns(RuntimeWarning, match="compilation cache disabled.*writable by group"):
+        assert _cache.enable(env) is None
+    shared.chmod(0o700)
+    assert _cache.unusable(shared) is None
+
+
+def test_a_program_of_other_arguments_is_replaced(tmp_path, monkeypatch):
+    """A stored program copied over another's name (right format, wrong arguments) is
+    not run: it is exported again and the file replaced, and the call gives its result."""
+    import numpy as np
+
+    traced = []
+    x = np.arange(4, dtype=np.float32)
+    _stored_square(tmp_path, monkeypatch, traced)(x, factor=3)
+    _stored_square(tmp_path, monkeypatch, traced)(x[:3], factor=3)
+    short, full = sorted(exported(tmp_path), key=lambda p: p.stat().st_mtime_ns)[::-1]
+    full.write_bytes(short.read_bytes())  # the (3,) program under the (4,) one's name
+    again = _stored_square(tmp_path, monkeypatch, traced)
+    np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
+    assert len(traced) == 3 and full.read_bytes() != short.read_bytes()
