@@ -42,31 +42,34 @@ SMALL_QUERY = 4096
 
 
 def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None,
-        workers: int = -1) -> np.ndarray:
+        workers: int = -1, distances: bool = False):
     """Indices (M, k) of the k nearest points of points (N, 3) to each query (M, 3)
     (default: the points themselves, each first among its own neighbours up to ties),
-    on ``workers`` threads (-1: all cores)."""
+    on ``workers`` threads (-1: all cores); with ``distances``, (distances (M, k),
+    indices)."""
     from scipy.spatial import cKDTree
 
     queries = points if queries is None else queries
-    return cKDTree(points).query(queries, k=k, workers=workers)[1]
+    found = cKDTree(points).query(queries, k=k, workers=workers)
+    return found if distances else found[1]
 
 
-def knn_many(clouds, queries, ks) -> list[np.ndarray]:
-    """``knn(clouds[i], ks[i], queries[i])`` for every cloud: large ones one after the
-    other on all cores; small ones (< SMALL_QUERY queries), if there are several, one
-    per core at a time (cKDTree releases the GIL while it queries)."""
+def knn_many(clouds, queries, ks, distances: bool = False) -> list:
+    """``knn(clouds[i], ks[i], queries[i], distances=distances)`` for every cloud: large
+    ones one after the other on all cores; small ones (< SMALL_QUERY queries), if there
+    are several, one per core at a time (cKDTree releases the GIL while it queries)."""
     out = [None] * len(clouds)
     small = [i for i, q in enumerate(queries) if len(q) < SMALL_QUERY]
     if len(small) < 2:  # nothing to run side by side
         small = []
     for i in sorted(set(range(len(clouds))) - set(small)):
-        out[i] = knn(clouds[i], ks[i], queries[i])
+        out[i] = knn(clouds[i], ks[i], queries[i], distances=distances)
     if small:
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-            found = pool.map(lambda i: knn(clouds[i], ks[i], queries[i], workers=1), small)
+            found = pool.map(lambda i: knn(clouds[i], ks[i], queries[i], workers=1,
+                                           distances=distances), small)
             for i, hood in zip(small, found, strict=True):
                 out[i] = hood
     return out
@@ -234,6 +237,21 @@ def _check_k(k, n: int) -> int:
     return int(k)
 
 
+def distinct_neighbours(points, queries, k, dist, hood):
+    """(base, k, neighbours (M, k) into base) for PCA, from the k nearest neighbours
+    ``hood`` of queries (M, 3) among points (N, 3) at distances ``dist``: as given,
+    unless a point has an exact copy; then among the distinct points (neighbourhoods of
+    repeated points can hold fewer than three distinct ones: a scan with every point
+    stored 16 times had none, and every normal was arbitrary)."""
+    if dist.shape[1] < 2 or not (dist[:, 1] == 0).any():
+        return points, k, hood
+    distinct = np.unique(points, axis=0)
+    if len(distinct) < 3:
+        return points, k, hood
+    k = min(k, len(distinct))
+    return distinct, k, knn(distinct, k, queries)
+
+
 def normals_at(points: np.ndarray, indices: np.ndarray, k: int = 16) -> np.ndarray:
     """Unoriented unit normals (M, 3) at points[indices] only, from their k nearest
     neighbours among all points (N, 3): what ``fit`` needs, since it draws minimal
@@ -246,7 +264,12 @@ def normals_at_many(clouds, indices, ks) -> list[np.ndarray]:
     one PCA per neighbourhood size over all their clouds stacked (the eigen-solver's fixed
     cost, some 50 NumPy calls, is paid once per block, not once per cloud)."""
     ks = [_check_k(k, len(c)) for c, k in zip(clouds, ks, strict=True)]
-    neighbours = knn_many(clouds, [c[i] for c, i in zip(clouds, indices, strict=True)], ks)
+    queries = [c[i] for c, i in zip(clouds, indices, strict=True)]
+    found = knn_many(clouds, queries, ks, distances=True)
+    clouds, neighbours = list(clouds), [None] * len(clouds)
+    for i, (dist, hood) in enumerate(found):
+        clouds[i], ks[i], neighbours[i] = distinct_neighbours(clouds[i], queries[i], ks[i],
+                                                              dist, hood)
     out = [None] * len(clouds)
     for k in set(ks):
         which = [i for i, ki in enumerate(ks) if ki == k]
@@ -286,8 +309,8 @@ def estimate_normals(points, k: int = 16, *, orient: str | None = "mst",
         raise ValueError(f"unknown orient {orient!r}; expected one of {ORIENTATIONS}")
     if viewpoint is not None:
         viewpoint = _checks.cloud(np.reshape(viewpoint, (1, 3)), "viewpoint")[0]
-    neighbours = knn(cloud, k)
-    normals = pca_normals(cloud, neighbours)
+    dist, neighbours = knn(cloud, k, distances=True)
+    normals = pca_normals(*distinct_neighbours(cloud, cloud, k, dist, neighbours)[::2])
     if orient == "mst":
         return orient_mst(normals, cloud, neighbours, viewpoint)
     if orient == "direct":

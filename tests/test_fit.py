@@ -386,6 +386,15 @@ def test_an_axis_prior_far_from_the_truth_holds_under_refinement(name):
     assert axis_angle_deg(fitted, prior) <= 10 + 1e-6
 
 
+def test_repeated_points_are_not_degenerate():
+    """Every point stored 16 times: the oriented cylinder's normals had all been
+    arbitrary, and the fit raised 'degenerate'."""
+    points, true, _ = demo_cloud("cylinder", count=500, seed=0)
+    result = jaxfit.fit(np.repeat(points, 16, axis=0), "cylinder", key=0)
+    assert abs(result.model.radius / true.radius - 1) < 0.01
+    assert axis_angle_deg(result.model.axis, true.axis) < 1.0
+
+
 def test_normal_gate_drops_points_whose_normals_disagree():
     from jaxfit.evaluation.scenarios import make
 

@@ -158,3 +158,14 @@ def test_batched_normals_equal_one_cloud_at_a_time(monkeypatch):
         if len(c) >= 200:  # dense enough for k = 16 to see a smooth surface
             radial = (c[i] - m.center) / m.radius
             assert np.median(np.abs(np.sum(b * radial, axis=1))) > np.cos(np.radians(5))
+
+
+def test_repeated_points_give_the_surface_normals():
+    """A scan that stores every point 16 times has neighbourhoods of one distinct point:
+    normals are taken among the distinct points (they had been arbitrary)."""
+    points = Sphere(np.zeros(3), 1.0).sample(800, np.random.default_rng(0))[0]
+    repeated = np.repeat(points, 16, axis=0)
+    some = np.arange(0, len(repeated), 7)
+    for normals, at in ((jaxfit.estimate_normals(repeated, orient=None), repeated),
+                        (jaxfit.normals.normals_at(repeated, some), repeated[some])):
+        assert np.median(np.abs(np.einsum("ij,ij->i", normals, at))) > 0.99
