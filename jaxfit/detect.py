@@ -103,10 +103,14 @@ class Scene:
 
 
 def median_spacing(points: np.ndarray) -> float:
-    """Median distance from each point (N, 3) to its nearest other point."""
+    """Median distance from each distinct point of points (N, 3) to its nearest other one
+    (copies of a point do not make the spacing 0); 0 if fewer than two are distinct."""
     from scipy.spatial import cKDTree
 
-    return float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+    distinct = np.unique(points, axis=0)
+    if len(distinct) < 2:
+        return 0.0
+    return float(np.median(cKDTree(distinct).query(distinct, k=2)[0][:, 1]))
 
 
 def components(points: np.ndarray, radius: float) -> np.ndarray:
@@ -116,6 +120,11 @@ def components(points: np.ndarray, radius: float) -> np.ndarray:
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
+    distinct, inverse = np.unique(points, axis=0, return_inverse=True)
+    if len(distinct) < len(points):  # copies join their point: pairs among distinct ones
+        labels = components(distinct, radius)[inverse.reshape(-1)]
+        by_size = np.argsort(-np.bincount(labels), kind="stable")
+        return np.argsort(by_size)[labels]
     n = len(points)
     pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))

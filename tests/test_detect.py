@@ -114,3 +114,16 @@ def test_no_detection_is_smaller_than_min_inliers(data_dir, name):
     taken = np.concatenate([d.indices for d in result.shapes] + [result.unassigned])
     np.testing.assert_array_equal(np.sort(taken), np.arange(len(points)))
 
+
+
+def test_copies_of_points_neither_crash_nor_hide_the_shapes():
+    """5,000 copies of one point beside a sphere had raised 'all points coincide'; a cloud
+    with every point stored twice had a median spacing of 0 and found nothing."""
+    from jaxfit.shapes import Sphere
+
+    sphere = Sphere(np.zeros(3), 1.0).sample(3000, np.random.default_rng(0))[0]
+    piled = jaxfit.detect(np.vstack([sphere, np.tile([[3.0, 0.0, 0.0]], (5000, 1))]), key=0)
+    assert [d.shape for d in piled.shapes] == ["sphere"]
+    assert len(piled.shapes[0].indices) == 3000 and len(piled.unassigned) == 5000
+    twice = jaxfit.detect(np.repeat(sphere, 2, axis=0), key=0)
+    assert [d.shape for d in twice.shapes] == ["sphere"] and len(twice.unassigned) == 0

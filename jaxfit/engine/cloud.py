@@ -40,7 +40,7 @@ def normalise(points: np.ndarray, bounds=None):
     center = 0.5 * (lo + hi)
     scale = float(row_norms(points - center).max())
     if not scale > 0:
-        raise ValueError("all points coincide: there is no shape to fit")
+        raise _checks.FitError("all points coincide: there is no shape to fit")
     return center, scale
 
 
