@@ -66,8 +66,9 @@ _enabled_dir: str | None = None  # the folder jaxfit configured, None if it conf
 
 
 def user_cache_root(environ=os.environ, platform: str = sys.platform) -> Path:
-    """The per-user cache folder of the platform (XDG on Linux)."""
-    if environ.get("XDG_CACHE_HOME"):
+    """The per-user cache folder of the platform (XDG on Linux: a relative
+    ``XDG_CACHE_HOME`` is ignored, as the XDG spec says)."""
+    if environ.get("XDG_CACHE_HOME") and Path(environ["XDG_CACHE_HOME"]).is_absolute():
         return Path(environ["XDG_CACHE_HOME"])
     if platform == "darwin":
         return Path.home() / "Library" / "Caches"
@@ -117,7 +118,13 @@ def enable(environ=os.environ) -> str | None:
     the user, or the folder unusable, which warns once).
     """
     global _enabled_dir
-    path = wanted_dir(environ)
+    try:
+        path = wanted_dir(environ)
+    except (RuntimeError, KeyError, OSError) as err:  # no home folder (no HOME, no passwd)
+        warnings.warn(f"jaxfit: compilation cache disabled, no user cache folder ({err}); "
+                      f"set {ENV_DIR} to a folder or {ENV_SWITCH}=0 to silence this",
+                      RuntimeWarning, stacklevel=2)
+        return None
     if path is None or _jax_configured():
         return None
     reason = unusable(path)

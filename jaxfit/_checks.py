@@ -30,6 +30,8 @@ def model_class(shape) -> type[Model]:
 def cloud(points, name: str = "points") -> np.ndarray:
     """An (N, 3) float64 copy of ``points``; raises on wrong shape or non-finite values."""
     try:
+        if np.iscomplexobj(points):  # (float64 would drop the imaginary part, with a warning)
+            raise TypeError(f"complex values ({np.asarray(points).dtype})")
         arr = np.array(points, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{name} must be numeric, of shape (N, 3): {err}") from None
@@ -64,6 +66,8 @@ def normals_for(normals, points: np.ndarray):
 
 
 def positive(value, name: str, *, integer: bool = False):
+    if isinstance(value, np.ndarray) and value.ndim == 0:  # np.array(0.01) is a number
+        value = value.item()
     kind = numbers.Integral if integer else numbers.Real
     wrong_type = isinstance(value, bool) or not isinstance(value, kind)
     if wrong_type or not np.isfinite(value) or value <= 0:

@@ -224,3 +224,24 @@ def test_a_program_of_other_arguments_is_replaced(tmp_path, monkeypatch):
     again = _stored_square(tmp_path, monkeypatch, traced)
     np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
     assert len(traced) == 3 and full.read_bytes() != short.read_bytes()
+
+
+def test_a_relative_xdg_cache_home_is_ignored():
+    folder = _cache.wanted_dir({"XDG_CACHE_HOME": "relative/cache"}, platform="linux")
+    assert folder.is_absolute() and "relative" not in folder.parts
+
+
+def test_no_home_folder_leaves_jaxfit_importable(tmp_path):
+    """Without HOME (and, here, no passwd entry to fall back on) import jaxfit works,
+    without a cache and with one warning."""
+    code = ("import os, pathlib\n"
+            "def no_home(): raise RuntimeError('Could not determine home directory.')\n"
+            "pathlib.Path.home = staticmethod(no_home)\n"
+            "import jaxfit; print(jaxfit.compilation_cache_dir())\n")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("HOME", "XDG_CACHE_HOME") and not k.startswith("JAXFIT_CACHE")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "None" and out.stderr.count("no user cache folder") == 1
+

@@ -172,3 +172,11 @@ def test_every_kind_of_key_chooses_the_sampled_points():
     assert not np.array_equal(points["jax1"], points["jax2"])
     assert not np.array_equal(points["jax1"], points["int"])
 
+
+def test_one_shape_by_name_and_a_bad_reassign():
+    points = composite("mallet", count=3000, seed=0)[0]
+    one = decompose(points, shapes="cylinder", gain=0.9, reassign=0)
+    assert set(one.parts[0].candidates) == {"cylinder", "mvbb"}
+    with pytest.raises(ValueError, match="reassign must be a non-negative integer"):
+        decompose(points, reassign=-1)
+

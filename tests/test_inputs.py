@@ -43,12 +43,40 @@ GOOD = np.random.default_rng(0).normal(size=(50, 3))
         (GOOD, {"key": "seven"}, "key must be"),
         (GOOD, {"key": jax.random.split(jax.random.key(0), 3)}, "key must be"),
         (np.ones((20, 3)), {}, "all points coincide"),
+        (GOOD + 1j, {}, "numeric.*complex"),
+        (GOOD, {"threshold": "0.1"}, "threshold must be a positive finite number, got '0.1'"),
+        (GOOD, {"refine": "no"}, "refine must be True or False"),
     ],
 )
 def test_bad_input_is_named(points, kwargs, message):
     shape = kwargs.pop("shape", "sphere")
     with pytest.raises(ValueError, match=message):
         jaxfit.fit(points, shape, **kwargs)
+
+
+def test_numbers_in_numpy_form_are_numbers():
+    threshold = jaxfit.fit(GOOD, "sphere", threshold=np.array(0.5), max_hypotheses=256).threshold
+    assert threshold == 0.5
+    fixed = jaxfit.fit(GOOD, "sphere", min_hypotheses=np.int64(512), max_hypotheses=512,
+                       max_stall=10**6)
+    assert fixed.num_hypotheses == 512
+
+
+def test_a_batch_skips_and_names_its_failed_clouds():
+    """skip_failures gives None for a cloud whose points all coincide (it raised); without
+    it the error names the cloud. The other clouds keep their keys fold_in(key, i)."""
+    clouds = [GOOD, np.ones((20, 3)), GOOD[::-1].copy()]
+    skipped = jaxfit.fit_batch(clouds, "sphere", key=4, skip_failures=True)
+    assert skipped[1] is None and skipped[0] is not None and skipped[2] is not None
+    whole = jaxfit.fit_batch([GOOD, GOOD, GOOD[::-1].copy()], "sphere", key=4)
+    np.testing.assert_allclose(skipped[2].model.center, whole[2].model.center, atol=1e-5)
+    with pytest.raises(jaxfit.FitError, match="cloud 1: all points coincide"):
+        jaxfit.fit_batch(clouds, "sphere", key=4)
+
+
+def test_unreachable_bounds_are_named():
+    with pytest.raises(jaxfit.FitError, match="none within the bounds radius_range"):
+        jaxfit.fit(GOOD, "sphere", radius_range=(50, 60), max_hypotheses=512)
 
 
 def test_too_few_points_names_the_shape():

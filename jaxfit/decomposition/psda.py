@@ -32,6 +32,7 @@ import dataclasses
 import functools
 import itertools
 import json
+import numbers
 import sys
 import time
 from pathlib import Path
@@ -216,7 +217,11 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     progress : print the stages to stderr.
     """
     started = time.perf_counter()
+    if isinstance(shapes, str) or isinstance(shapes, type):  # one shape, not its letters
+        shapes = [shapes]
     classes = [_checks.model_class(s) for s in shapes]
+    if isinstance(reassign, bool) or not isinstance(reassign, numbers.Integral) or reassign < 0:
+        raise ValueError(f"reassign must be a non-negative integer, got {reassign!r}")
     if not 0 < gain <= 1:
         raise ValueError(f"gain must be in (0, 1], got {gain!r}")
     seed = _checks.numpy_seed(key)

@@ -96,42 +96,54 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
         raise ValueError("clouds is empty: give at least one (N, 3) array")
     if normals is not None and len(normals) != len(clouds):
         raise ValueError(f"normals must be one array per cloud ({len(clouds)}), got {len(normals)}")
-    if thresholds is None or isinstance(thresholds, numbers.Real):
-        thresholds = [thresholds] * len(clouds)
+    if thresholds is None or isinstance(thresholds, numbers.Real | str) or np.ndim(thresholds) == 0:
+        thresholds = [thresholds] * len(clouds)  # one for all (checked per cloud)
     if len(thresholds) != len(clouds):
         raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
     seed = _checks.seed_of(key)
     if seed is None:  # (an int seed becomes a key only where one is needed)
         key = _checks.prng_key(key)
     uses_normals = cls.estimator(checked.estimator).uses_normals
-    prepared = []
+    named = (lambda i, err: type(err)(f"cloud {i}: {err}")) if len(clouds) > 1 else (
+        lambda i, err: err)
+    results: list[FitResult | None] = [None] * len(clouds)
+    prepared, which = [], []  # the clouds that go to the loop, and their places
     for i, points in enumerate(clouds):
         try:
             prepared.append(prepare(points, cls, None if normals is None else normals[i],
                                     thresholds[i], uses_normals, key, i, checked.bounds))
+            which.append(i)
+        except _checks.FitError as err:  # well-formed, but no shape in it (coincident)
+            if not skip_failures:
+                raise named(i, err) from None
         except ValueError as err:
-            raise type(err)(f"cloud {i}: {err}" if len(clouds) > 1 else str(err)) from None
+            raise named(i, err) from None
+    if not prepared:
+        return results
     estimate_normals(prepared)
 
-    thetas, drawn, status = search(cls, checked, prepared, key, seed)
-    results = []
-    for i, cloud in enumerate(prepared):
+    thetas, drawn, status = search(cls, checked, prepared, key, seed, which)
+    for j, (i, cloud) in enumerate(zip(which, prepared, strict=True)):
         try:
-            results.append(result(cls, cloud, thetas[i], drawn[i], status[i]))
-        except _checks.FitError:
+            results[i] = result(cls, cloud, thetas[j], drawn[j], status[j], checked)
+        except _checks.FitError as err:
             if not skip_failures:
-                raise
-            results.append(None)
+                raise named(i, err) from None
     return results
 
 
-def result(cls: type[Model], cloud: Cloud, theta, drawn, status) -> FitResult:
+def result(cls: type[Model], cloud: Cloud, theta, drawn, status,
+           options: FitOptions | None = None) -> FitResult:
     """The FitResult of hypothesis theta (P,) (normalised frame) on ``cloud``; raises
     ``FitError`` when no hypothesis was valid or the best has no inliers."""
     if not np.all(np.isfinite(theta)):
+        bounded_by = [f"{name}={getattr(options, name)!r}" for name in
+                      ("radius_range", "axis_prior") if getattr(options, name, None) is not None]
+        why = (f"none within the bounds {', '.join(bounded_by)}, or the points are "
+               "degenerate" if bounded_by else "the points are degenerate")
         raise _checks.FitError(
-            f"no valid {cls.name} hypothesis in {drawn} samples: the points are degenerate "
-            f"for a {cls.name} (coincident, collinear or coplanar)"
+            f"no valid {cls.name} hypothesis in {drawn} samples: {why} for a {cls.name} "
+            "(coincident, collinear or coplanar)"
         )
     unit_threshold = cloud.threshold / cloud.scale
     theta = np.asarray(theta, np.float64)

@@ -35,6 +35,11 @@ def cloud_keys(key, slots: int):
     return _keys_of_key(key, np.arange(slots, dtype=np.int32))
 
 
+def keys_at(key, indices):
+    """(S,) keys fold_in(key, i) for the cloud indices i of ``indices`` (S,)."""
+    return _keys_of_key(key, np.asarray(indices, np.int32))
+
+
 @functools.lru_cache(maxsize=256)
 def seed_cloud_keys(seed: int, impl: str, slots: int):
     """``cloud_keys`` of ``jax.random.key(seed)`` in one dispatch, kept per seed (keys

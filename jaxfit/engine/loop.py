@@ -8,11 +8,12 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from .. import _checks
 from ..shapes import Model
 from .backend import placer, slots
 from .cloud import Cloud, bucket_size, padded
 from .kernel import batch_best_many, refine_many
-from .keys import cloud_keys, seed_cloud_keys
+from .keys import cloud_keys, keys_at, seed_cloud_keys
 from .options import Bounds, FitOptions
 from .refine import lo_rows
 from .stopping import Status
@@ -33,9 +34,22 @@ def subset_rows(mask: np.ndarray, multiple: int = 1):
     return np.concatenate([live, np.full(size - len(live), live[0])])
 
 
-def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed):
+def _keys(key, seed, which, count: int, rows_count: int):
+    """The (rows_count,) keys of the slots: fold_in(key, index in the call) for each
+    cloud, and padding slots fold_in(key, slot) when the clouds are the call's first ones
+    (one cached dispatch), else the first cloud's key."""
+    if which is None or list(which) == list(range(count)):
+        return (cloud_keys(key, rows_count) if seed is None
+                else seed_cloud_keys(seed, jax.config.jax_default_prng_impl, rows_count))
+    base = key if seed is None else _checks.prng_key(seed)
+    return keys_at(base, list(which) + [which[0]] * (rows_count - count))
+
+
+def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
+           which=None):
     """Run the checked ``options`` on the prepared clouds; ``key`` is the call's JAX key,
-    or None with the int ``seed`` it stands for.
+    or None with the int ``seed`` it stands for; ``which``: each cloud's index in the
+    call (its key is fold_in(key, index); default 0, 1, ...).
 
     Returns the best theta (C, P) per cloud (NaN where none was valid), hypotheses drawn
     (C,) and the Status (C,) of each cloud.
@@ -58,8 +72,7 @@ def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed
                     if est.uses_normals or gated else None),
         "n": np.asarray([clouds[i].points.shape[0] for i in order], np.int32),
         "n_sample": np.asarray([m for _, _, m in rows], np.int32),
-        "keys": (cloud_keys(key, rows_count) if seed is None
-                 else seed_cloud_keys(seed, jax.config.jax_default_prng_impl, rows_count)),
+        "keys": _keys(key, seed, which, count, rows_count),
         "threshold": np.asarray([clouds[i].threshold / clouds[i].scale for i in order], dtype),
         "bounds": Bounds.stack([clouds[i].unit_bounds() for i in order], dtype),
     }

@@ -216,6 +216,8 @@ class FitOptions:
                                                       and min_hypotheses >= 0):
             raise ValueError(
                 f"min_hypotheses must be a non-negative integer, got {min_hypotheses!r}")
+        if not isinstance(self.refine, bool | np.bool_):
+            raise ValueError(f"refine must be True or False, got {self.refine!r}")
         for stage, kind in ((self.sampler, Sampler), (self.scorer, Scorer),
                             (self.stopping, StoppingRule), (self.refiner, LocalOptimizer)):
             if not isinstance(stage, kind):
