@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -19,6 +21,50 @@ from .evaluation import scenarios
 from .evaluation.synthetic import COMPOSITES
 from .shapes import REGISTRY
 from .shapes._base import ESTIMATORS
+
+#: Formats ``--mesh`` writes (trimesh's exporters).
+MESH_OUTPUTS = (".ply", ".stl", ".obj", ".off", ".glb", ".gltf")
+#: Set to see the traceback of an unexpected error instead of its one-line message.
+DEBUG_ENV = "JAXFIT_DEBUG"
+
+
+def _file_target(path: str, flag: str, suffixes=None) -> None:
+    """Raise ValueError unless a file can be written at ``path`` (checked before any
+    work, so a long run never ends on a bad output path)."""
+    target = Path(path)
+    if suffixes and target.suffix.lower() not in suffixes:
+        raise ValueError(f"{flag} {path}: unsupported extension {target.suffix!r}; use one "
+                         f"of {', '.join(suffixes)}")
+    if target.is_dir():
+        raise ValueError(f"{flag} {path} is a folder; give a file name")
+    folder = target.parent if str(target.parent) else Path(".")
+    if not folder.is_dir():
+        raise ValueError(f"{flag} {path}: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or (target.exists() and not os.access(target, os.W_OK)):
+        raise ValueError(f"{flag} {path}: not writable")
+
+
+def _folder_target(path: str, flag: str) -> None:
+    """Raise ValueError unless ``path`` is, or can be made, a writable folder."""
+    target = Path(path)
+    if target.exists() and not target.is_dir():
+        raise ValueError(f"{flag} {path} is a file, not a folder")
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"{flag} {path}: cannot make the folder ({err.strerror})") from None
+    if not os.access(target, os.W_OK):
+        raise ValueError(f"{flag} {path}: not writable")
+
+
+def _check_outputs(args) -> None:
+    """Every output path of the command, checked before it starts."""
+    if getattr(args, "json", None):
+        _file_target(args.json, "--json")
+    if getattr(args, "mesh", None):
+        _file_target(args.mesh, "--mesh", MESH_OUTPUTS)
+    if getattr(args, "out", None) and not (args.command == "demo" and args.shape):
+        _folder_target(args.out, "--out")  # (demo --shape fits one cloud: no folder)
 
 
 def _print_model(model, title):
@@ -179,12 +225,28 @@ def _cmd_evaluate(args):
 
 
 def main(argv=None) -> int:
+    """Run the command line; returns the exit status: 0, 2 for bad input (a message
+    naming it), 1 for any other error (its one-line message; the traceback with
+    JAXFIT_DEBUG=1), 130 when interrupted."""
     args = _parser().parse_args(argv)
     try:
+        _check_outputs(args)
         args.run(args)
-    except ValueError as err:  # bad input: a message, not a traceback
+    except BrokenPipeError:  # `jaxfit ... | head`: the reader left; say nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except KeyboardInterrupt:
+        print("jaxfit: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError) as err:  # bad input or an unusable file: a message
         print(f"jaxfit: error: {err}", file=sys.stderr)
         return 2
+    except Exception as err:  # anything else (a MemoryError, a bug): still no traceback
+        if os.environ.get(DEBUG_ENV):
+            raise
+        print(f"jaxfit: error: {type(err).__name__}: {err} (set {DEBUG_ENV}=1 for the "
+              "traceback)", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -1,6 +1,7 @@
 """The command line: demo, fit on files, JSON and mesh output, errors as messages."""
 
 import json
+import re
 
 import numpy as np
 import trimesh
@@ -76,3 +77,41 @@ def test_shape_and_estimator_choices_come_from_the_registry(monkeypatch, capsys)
     monkeypatch.setitem(REGISTRY, "torus", Sphere)
     assert _parser().parse_args(["fit", "x.npy", "--shape", "torus"]).shape == "torus"
     assert _parser().parse_args(["evaluate", "--shape", "torus"]).shape == ["torus"]
+
+
+def test_output_paths_are_checked_before_any_work(tmp_path, capsys, monkeypatch):
+    """A bad --json, --mesh or --out fails at once, naming the flag (it had failed only
+    after the whole fit or decomposition)."""
+    import jaxfit
+
+    def never(*args, **kwargs):
+        raise AssertionError("the work started")
+
+    monkeypatch.setattr(jaxfit, "fit", never)
+    cloud = tmp_path / "cloud.npy"
+    np.save(cloud, np.zeros((10, 3)))
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    cases = [(["--json", str(tmp_path)], "--json .* is a folder"),
+             (["--json", str(tmp_path / "missing" / "x.json")], "does not exist"),
+             (["--mesh", str(tmp_path / "m.xyz2")], "unsupported extension '.xyz2'.*.ply")]
+    for extra, message in cases:
+        assert main(["fit", str(cloud), "--shape", "plane", *extra]) == 2
+        err = capsys.readouterr().err
+        assert re.search(message, err), err
+    assert main(["decompose", str(cloud), "--out", str(a_file)]) == 2
+    assert "--out" in (err := capsys.readouterr().err) and "is a file, not a folder" in err
+
+
+def test_an_unexpected_error_is_one_line(tmp_path, capsys, monkeypatch):
+    import jaxfit.io
+
+    def broken(*args, **kwargs):
+        raise IndexError("face index 7 out of range")
+
+    monkeypatch.setattr(jaxfit.io, "load_points", broken)
+    monkeypatch.delenv("JAXFIT_DEBUG", raising=False)
+    assert main(["fit", str(tmp_path / "x.ply"), "--shape", "plane"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("jaxfit: error: IndexError: face index 7") and "Traceback" not in err
+
