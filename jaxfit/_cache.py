@@ -329,13 +329,11 @@ def stored_jit(fn, static_argnames=(), options=None) -> Stored:
 def _write(path: Path, blob) -> None:
     """Write blob to path all at once (a temporary file renamed into place), or not at all
     (an unwritable folder or a full disk only costs the next process a trace)."""
-    temporary = None
+    from .io.atomic import replacing
+
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, temporary = tempfile.mkstemp(prefix=".part-", dir=path.parent)
-        with os.fdopen(fd, "wb") as f:
-            f.write(blob)
-        os.replace(temporary, path)
+        with replacing(path, private=True) as temporary:
+            temporary.write_bytes(blob)
     except OSError:
-        if temporary is not None and os.path.exists(temporary):
-            os.unlink(temporary)
+        pass

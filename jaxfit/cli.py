@@ -19,6 +19,7 @@ import numpy as np
 from .evaluation import evaluate as evaluation
 from .evaluation import scenarios
 from .evaluation.synthetic import COMPOSITES
+from .io.atomic import replacing
 from .shapes import REGISTRY
 from .shapes._base import ESTIMATORS
 
@@ -95,11 +96,12 @@ def _fit_and_report(points, args):
                    "num_points": int(result.inliers.size), "cost": result.cost,
                    "threshold": result.threshold, "num_hypotheses": result.num_hypotheses,
                    "status": result.status.value}
-        with open(args.json, "w") as f:
-            json.dump(payload, f, indent=2)
+        with replacing(args.json) as path:
+            path.write_text(json.dumps(payload, indent=2))
         print(f"wrote {args.json}")
     if args.mesh:
-        result.model.to_mesh().export(args.mesh)
+        with replacing(args.mesh) as path:
+            result.model.to_mesh().export(path)
         print(f"wrote {args.mesh}")
     return result
 

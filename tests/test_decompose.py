@@ -180,3 +180,23 @@ def test_one_shape_by_name_and_a_bad_reassign():
     with pytest.raises(ValueError, match="reassign must be a non-negative integer"):
         decompose(points, reassign=-1)
 
+
+def test_a_failed_save_leaves_the_old_files(tmp_path, monkeypatch):
+    """Files are written to temporary names and renamed only when all three are done."""
+    import jaxfit.io.preview
+
+    result = decompose(composite("mallet", count=3000, seed=0)[0], gain=0.9, reassign=0)
+    result.save(tmp_path)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert set(before) == {"parts.json", "decomposition.glb", "preview.png"}
+
+    def interrupted(decomposition, path, **kwargs):
+        path.write_bytes(b"half a png")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(jaxfit.io.preview, "render", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        result.save(tmp_path)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert (tmp_path / "parts.json").stat().st_mode & 0o044  # the usual permissions
+

@@ -157,14 +157,20 @@ class Decomposition:
                 "hierarchy": self.tree.to_dict()}
 
     def save(self, directory) -> Path:
-        """Write parts.json, decomposition.glb and preview.png into ``directory``."""
+        """Write parts.json, decomposition.glb and preview.png into ``directory``: all
+        three are written to temporary files first and renamed into place only when all
+        are done (``io.atomic``), so a save that fails or is interrupted while writing
+        leaves the old files."""
+        from ..io.atomic import replacing
         from ..io.preview import render
 
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "parts.json").write_text(json.dumps(self.to_dict(), indent=1))
-        self.to_scene().export(out / "decomposition.glb")
-        render(self, out / "preview.png")
+        with (replacing(out / "parts.json") as parts, replacing(out / "decomposition.glb") as glb,
+              replacing(out / "preview.png") as preview):
+            parts.write_text(json.dumps(self.to_dict(), indent=1))
+            self.to_scene().export(glb)
+            render(self, preview)
         return out
 
     def summary(self) -> str:
