@@ -1,12 +1,18 @@
 """The Open Inventor reader: grammar, transforms, shapes, errors, and the real GraspIt! files."""
 
 import math
+import re
+import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
 
+from jaxfit.io import iv
 from jaxfit.io.iv import IVError, load_iv, loads_iv
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -209,6 +215,18 @@ def test_stray_closing_brace_warns_but_loads(tmp_path):
     assert len(mesh.faces) == 12
 
 
+def test_repeated_warnings_are_one_warning():
+    # A hostile file could hold millions of stray braces or undefined USEs.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        loads_iv("Cube { }\n}\n}\n} USE a USE b USE c")
+    messages = sorted(str(w.message) for w in caught)
+    assert messages == [
+        "USE of undefined name 'a' on line 4 of <string> ignored (and 2 more)",
+        "ignoring unmatched '}' on line 2 of <string> (and 2 more)",
+    ]
+
+
 def test_no_geometry(tmp_path):
     with pytest.raises(IVError, match="no surface geometry"):
         load_iv(write(tmp_path, "Separator { Material { diffuseColor 1 0 0 } }"))
@@ -296,3 +314,263 @@ def test_triangle_strip_mug_is_closed():
     assert len(mesh.faces) > 3000
     assert mesh.is_watertight and mesh.volume > 0
     np.testing.assert_allclose(extents(mesh), [133.4, 100.0, 104.7], atol=0.5)
+
+
+# ----- hostile input: budgets, counts, nesting, fuzzing ---------------------------------------
+def doubling_chain(leaf, levels):
+    """``DEF L0 leaf``, then one line per level ``DEF Li Separator { USE Li-1 USE Li-1 }``:
+    level i holds 2**i leaves (the 655-byte file of issue 14 took 51 s and 744 MB)."""
+    lines = [f"DEF L0 {leaf}"]
+    lines += [f"DEF L{i} Separator {{ USE L{i - 1} USE L{i - 1} }}" for i in range(1, levels + 1)]
+    return "\n".join(lines)
+
+
+def test_use_doubling_chain_is_refused_before_traversal():
+    # 2**40 spheres of 642 vertices and 1280 faces. Every level is also drawn at the top:
+    # the scene passes 10 million at level 12, on line 13 (1922 * (2**13 - 1) > 1e7).
+    with pytest.raises(IVError, match=r"^DEF L12 Separator on line 13 of <string> takes the "
+                                      r"scene past 10,000,000 vertices and faces"):
+        loads_iv(doubling_chain("Sphere { }", 40))
+    # Defined in a Switch that shows nothing and drawn once: level 13 itself passes it.
+    text = "Switch {\n" + doubling_chain("Sphere { }", 40) + "\n}\nUSE L40"
+    with pytest.raises(IVError, match=r"^USE L12 on line 15 of <string> takes DEF L13 "
+                                      r"Separator \(line 15\) past 10,000,000 vertices"):
+        loads_iv(text)
+
+
+def test_use_chain_of_nodes_is_refused():
+    # The chain of issue 14 (cubes), and one without geometry at all: 2**40 node visits.
+    for leaf in ("Cube { }", "Material { }"):
+        with pytest.raises(IVError, match=r"^DEF L17 Separator on line 18 .* past 500,000 "
+                                          "node visits"):
+            loads_iv(doubling_chain(leaf, 40) + "\nCube { }")
+    # A big coordinate list repeated: each repeat is one visit (it is read once).
+    points = " ".join(["1 2 3"] * 10_000)
+    with pytest.raises(IVError, match="node visits"):
+        loads_iv(doubling_chain(f"Coordinate3 {{ point [ {points} ] }}", 40))
+
+
+def test_budgets_are_the_module_constants(monkeypatch):
+    monkeypatch.setattr(iv, "MAX_GEOMETRY", 100)
+    assert len(loads_iv("Cube { }").faces) == 12  # 8 vertices + 12 faces
+    with pytest.raises(IVError, match="Sphere on line 1 .* past 100 vertices and faces"):
+        loads_iv("Cube { } Sphere { }")  # 642 + 1280
+    loads_iv("DEF C Cube { }\n" + "USE C\n" * 4)  # 5 cubes: 100
+    with pytest.raises(IVError, match="USE C on line 6 .* past 100 vertices and faces"):
+        loads_iv("DEF C Cube { }\n" + "USE C\n" * 5)
+    # An indexed set counts its triangles and the vertices they can use.
+    square = "Coordinate3 { point [0 0 0, 1 0 0, 1 1 0, 0 1 0] }\n"
+    loads_iv(square + "DEF F IndexedFaceSet { coordIndex [0 1 2 3 -1] }" + " USE F" * 15)
+    with pytest.raises(IVError, match="USE F on line 2 of <string> takes the scene past"):
+        loads_iv(square + "DEF F IndexedFaceSet { coordIndex [0 1 2 3 -1] }" + " USE F" * 16)
+    monkeypatch.setattr(iv, "MAX_NODES", 3)
+    with pytest.raises(IVError, match="Cube on line 1 .* takes Separator .line 1. past 3 node"):
+        loads_iv("Separator { Cube { } Cube { } Cube { } }")
+
+
+@pytest.mark.parametrize(
+    "shape, message",
+    [
+        ("FaceSet { numVertices [ 3000000000 ] }", "asks for 3000000000 coordinates"),
+        ("TriangleStripSet { numVertices [ 3, 3000000000 ] }",
+         "asks for 3000000000 coordinates from coordinate 3"),
+        ("FaceSet { numVertices [ 1e300 ] }", "asks for 1000000"),
+        ("FaceSet { numVertices [ 3, inf ] }", "non-finite count"),
+        ("FaceSet { startIndex 1e300  numVertices [ 3 ] }", "startIndex 1000000"),
+        ("FaceSet { startIndex -1  numVertices [ 3 ] }", "startIndex -1"),
+        ("FaceSet { startIndex nan }", "'startIndex' of FaceSet .* is nan"),
+        ("Switch { whichChild inf  Cube { } }", "'whichChild' of Switch .* is inf"),
+    ],
+)
+def test_counts_are_checked_against_the_coordinates_before_allocating(shape, message):
+    # Before, numVertices [3000000000] made a 24 GB index array before any range check.
+    text = f"Coordinate3 {{ point [ 0 0 0, 1 0 0, 0 1 0, 1 1 0 ] }}\n{shape}"
+    with pytest.raises(IVError) as error:
+        loads_iv(text)
+    assert re.search(message, str(error.value)) and "on line 2 of <string>" in str(error.value)
+
+
+def test_deep_nesting_needs_no_recursion():
+    depth = 2000  # 500 raised RecursionError before
+    text = "Separator { Translation { translation 1 0 0 }\n" * depth
+    mesh = loads_iv(text + "Cube { }\n" + "}\n" * depth + "Cube { }")
+    np.testing.assert_allclose(mesh.bounds, [[-1, -1, -1], [depth + 1, 1, 1]])
+    # Nodes nested in fields, and an unclosed one named by its line.
+    fields = "IndexedFaceSet { vertexProperty " * depth + "VertexProperty { }" + " }" * depth
+    assert len(loads_iv(fields + " Cube { }").faces) == 12
+    with pytest.raises(IVError, match=f"Separator on line {depth} is never closed"):
+        loads_iv(text)
+    # Nested through USE: neither the budget's pass nor the traversal recurses.
+    chain = "".join(f"DEF S{i} Separator {{ USE S{i - 1} }}\n" for i in range(1, depth))
+    mesh = loads_iv(f"Switch {{ DEF S0 Cube {{ }}\n{chain} }} USE S{depth - 1}")
+    assert len(mesh.faces) == 12
+
+
+# Tokens a fuzzed file is made of: the grammar's punctuation, node and field names, and
+# numbers that are awkward as counts or indices.
+_FIELDS = ["point", "vertex", "coordIndex", "numVertices", "startIndex", "whichChild",
+           "translation", "rotation", "scaleFactor", "scaleOrientation", "center", "matrix",
+           "axis", "angle", "radius", "height", "bottomRadius", "width", "vertexProperty"]
+_WORDS = sorted(iv._PARSED) + _FIELDS + ["Material", "Info", "DEF", "USE", "a", "b", "X",
+                                         "TRUE", "NULL"]
+_NUMBERS = ["0", "1", "2", "3", "4", "-1", "-2", "-3", "0.5", "1e300", "-1e300", "3000000000",
+            "nan", "inf", "-inf", "1e-300", "2.5e2", "1e"]
+_PUNCTUATION = ["{", "}", "[", "]", "(", ")", ",", "|", "=", '"s"', '"', "# c\n", "\n", "\\"]
+_TOKENS = st.sampled_from(_WORDS + _NUMBERS + _PUNCTUATION)
+
+# Random scenes that follow the grammar, so that fuzzing reaches the traversal and the
+# geometry: nested groups, shapes with their own fields (often small numbers), DEF/USE.
+_KIND_FIELDS = {
+    "Coordinate3": ["point"], "VertexProperty": ["vertex"],
+    "IndexedFaceSet": ["coordIndex", "vertexProperty"],
+    "IndexedTriangleStripSet": ["coordIndex", "vertexProperty"],
+    "FaceSet": ["numVertices", "startIndex", "vertexProperty"],
+    "TriangleStripSet": ["numVertices", "startIndex", "vertexProperty"],
+    "Switch": ["whichChild"], "Transform": ["translation", "rotation", "scaleFactor",
+                                            "scaleOrientation", "center"],
+    "Translation": ["translation"], "Rotation": ["rotation"], "Scale": ["scaleFactor"],
+    "RotationXYZ": ["axis", "angle"], "MatrixTransform": ["matrix"], "ResetTransform": [],
+    "Cube": ["width", "height", "depth"], "Sphere": ["radius"],
+    "Cylinder": ["radius", "height"], "Cone": ["bottomRadius", "height"],
+    "Separator": [], "Selection": [], "TransformSeparator": [], "Group": [], "Material": [],
+}
+_SMALL = st.sampled_from(["0", "1", "2", "3", "-1"] * 4 + _NUMBERS)
+_NUMBER_VALUES = st.one_of(
+    st.lists(_SMALL, max_size=16).map(lambda v: "[ " + ", ".join(v) + " ]"),
+    st.lists(_SMALL, min_size=1, max_size=4).map(" ".join),
+    st.sampled_from(["X", '"s"', "USE a", "[ ]"]),
+)
+_POINTS = st.lists(st.tuples(_SMALL, _SMALL, _SMALL).map(" ".join), max_size=6).map(
+    lambda p: "[ " + ", ".join(p) + " ]")
+_SPECIAL_VALUES = {
+    "point": _POINTS, "vertex": _POINTS,
+    "vertexProperty": st.one_of(_POINTS.map(lambda p: f"VertexProperty {{ vertex {p} }}"),
+                                st.sampled_from(["USE a", "VertexProperty { }", "Cube { }"])),
+    "axis": st.sampled_from(["X", "Y", "Z", "W", "[ ]", "USE a"]),
+}
+
+
+def _field_text(kind):
+    names = _KIND_FIELDS[kind] * 4 + _FIELDS
+    return st.sampled_from(names).flatmap(
+        lambda name: _SPECIAL_VALUES.get(name, _NUMBER_VALUES).map(lambda v: f"{name} {v}"))
+
+
+_DEF = st.sampled_from(["", "", "DEF a ", "DEF b "])
+_LEAF_KINDS = sorted(set(_KIND_FIELDS) - iv._GROUPS)
+_LEAF = st.one_of(
+    st.tuples(_DEF, st.sampled_from(_LEAF_KINDS).flatmap(
+        lambda kind: st.tuples(st.just(kind), st.lists(_field_text(kind), max_size=3))))
+    .map(lambda t: f"{t[0]}{t[1][0]} {{ {' '.join(t[1][1])} }}"),
+    st.sampled_from(["USE a", "USE b"]),
+)
+_SCENE = st.recursive(
+    _LEAF,
+    lambda children: st.tuples(
+        _DEF, st.sampled_from(sorted(iv._GROUPS)).flatmap(
+            lambda kind: st.tuples(st.just(kind), st.lists(_field_text(kind), max_size=1))),
+        st.lists(children, max_size=5))
+    .map(lambda t: f"{t[0]}{t[1][0]} {{ {' '.join(t[1][1])}\n{chr(10).join(t[2])} }}"),
+    max_leaves=15,
+)
+
+_VALID = """#Inventor V2.1 ascii
+DEF Root Separator {
+  Transform { translation 1 2 3  rotation 0 0 1 0.5  scaleFactor 1 2 1 }
+  DEF C Coordinate3 { point [ 0 0 0, 1 0 0, 1 1 0, 0 1 0, 0 0 1 ] }
+  IndexedFaceSet { coordIndex [ 0, 1, 2, 3, -1, 0, 1, 4, -1 ] }
+  FaceSet { startIndex 1 numVertices [ 3, -1 ] }
+  Separator { MatrixTransform { matrix 1 0 0 0 0 1 0 0 0 0 1 0 5 0 0 1 }
+              IndexedTriangleStripSet { vertexProperty VertexProperty {
+                  vertex [ 0 0 0, 0 1 0, 1 0 0, 1 1 0 ] } coordIndex [ 0 1 2 3 -1 ] } }
+  Switch { whichChild 1 Cube { } Cylinder { radius 1 height 2 } }
+  TransformSeparator { RotationXYZ { axis X angle 1 } Cone { } }
+  Scale { scaleFactor -1 1 1 } USE C TriangleStripSet { numVertices [ 4 ] }
+}
+Separator { Translation { translation 9 0 0 } USE Root Sphere { radius 2 } }
+"""
+_VALID_TOKENS = re.findall(r"\S+", _VALID.split("\n", 1)[1])  # no header comment
+
+
+def _loads_or_iv_error(text):
+    """Parse ``text``: a trimesh or an IVError naming the line, nothing else. Small budgets
+    keep each example fast (and reach the budget errors often)."""
+    with warnings.catch_warnings(), pytest.MonkeyPatch.context() as patch:
+        warnings.simplefilter("ignore")  # stray braces, undefined USE, NaN arithmetic
+        patch.setattr(iv, "MAX_GEOMETRY", 100_000, raising=False)
+        patch.setattr(iv, "MAX_NODES", 10_000, raising=False)
+        try:
+            mesh = loads_iv(text)
+        except IVError as error:
+            assert "line" in str(error) or "no surface geometry" in str(error)
+            return
+    assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) >= 1
+    assert mesh.faces.min() >= 0 and mesh.faces.max() < len(mesh.vertices)
+
+
+_FUZZ = settings(max_examples=150, deadline=None,
+                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
+
+
+def test_the_valid_fuzz_seed_loads():
+    assert len(loads_iv(_VALID).faces) > 1000
+
+
+@_FUZZ
+@given(st.lists(_TOKENS, max_size=60))
+@example(["Separator", "{"] * 600)  # RecursionError before
+def test_fuzz_token_soup(tokens):
+    _loads_or_iv_error(" ".join(tokens))
+
+
+@settings(_FUZZ, max_examples=100)
+@given(st.lists(_SCENE, min_size=1, max_size=4), st.integers(0, 1000), st.integers(0, 40))
+@example(["Cube { }"], 600, 0)  # RecursionError before
+@example(["FaceSet { numVertices [ 3000000000 ] }"], 0, 0)  # MemoryError before
+def test_fuzz_random_scenes(nodes, depth, doublings):
+    # Inside ``depth`` Separators; then ``doublings`` lines that each double the scene.
+    text = "Separator {\n" * depth + "DEF a Separator {\n" + "\n".join(nodes) + "\n}"
+    text += "\nDEF a Separator { USE a USE a }" * doublings + "\n}" * depth
+    _loads_or_iv_error(text)
+
+
+@_FUZZ
+@given(st.lists(st.tuples(st.sampled_from(["delete", "insert", "replace", "repeat"]),
+                          st.integers(0, len(_VALID_TOKENS) - 1), st.integers(1, 8), _TOKENS),
+                min_size=1, max_size=4))
+@example([("replace", _VALID_TOKENS.index("whichChild") + 1, 1, "nan")])  # ValueError before
+@example([("replace", _VALID_TOKENS.index("startIndex") + 1, 1, "inf")])  # OverflowError
+def test_fuzz_mutated_valid_file(mutations):
+    tokens = list(_VALID_TOKENS)
+    for op, at, length, token in mutations:
+        at = min(at, len(tokens))
+        if op == "delete":
+            del tokens[at:at + length]
+        elif op == "insert":
+            tokens[at:at] = [token] * length
+        elif op == "replace":
+            tokens[at:at + 1] = [token]
+        else:  # repeat a span, as a careless edit or a USE-happy generator would
+            tokens[at:at] = tokens[at:at + length] * 3
+    _loads_or_iv_error(" ".join(tokens))
+
+
+@_FUZZ
+@given(st.lists(st.tuples(st.integers(0, len(_VALID) - 1), st.binary(max_size=4)),
+                min_size=1, max_size=6))
+@example([(_VALID.index("whichChild") + 11, b"inf ")])  # OverflowError before
+def test_fuzz_bytes_of_a_file(edits):
+    # Byte-level damage through load_iv (the header check and the latin-1 decoding).
+    data = bytearray(_VALID.encode())
+    for at, new in edits:
+        data[at:at + len(new)] = new
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "fuzz.iv"
+        path.write_bytes(bytes(data))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                mesh = load_iv(path)
+            except IVError:
+                return
+    assert len(mesh.faces) >= 1

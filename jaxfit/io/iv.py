@@ -22,11 +22,20 @@ Supported, the subset those models and the Inventor Mentor examples use:
 
 Every other node (Material, ShapeHints, Normal, Texture2, Info, lines, points, ...) is
 skipped whole, braces and all. Deliberately free of jax, like ``jaxfit.io``.
+
+Hostile input: any text either gives a mesh or raises ``IVError`` (a ``ValueError``)
+naming the line, in time and memory bounded by the file's size plus the budgets below.
+Before anything is traversed, the scene's expansion (every ``USE`` counted as a copy of
+its target) is bounded: at most ``MAX_GEOMETRY`` vertices plus faces and ``MAX_NODES``
+node visits. Every count and index is checked against the coordinates present before an
+array of that size is made. Nesting is parsed and traversed with explicit stacks, so it
+is limited only by the file's size, never by Python's recursion limit. See docs/iv.md.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import re
 import warnings
@@ -42,6 +51,12 @@ __all__ = ["IVError", "load_iv", "loads_iv"]
 SECTIONS = 64
 #: Icosphere subdivisions for Sphere (642 vertices, near-uniform triangles for sampling).
 SPHERE_SUBDIVISIONS = 3
+#: Budget on the scene's vertices plus faces once every USE is expanded, checked before
+#: traversal from what each shape can produce at most (docs/iv.md).
+MAX_GEOMETRY = 10_000_000
+#: Budget on node visits once every USE is expanded: it bounds the traversal time of
+#: scenes whose repeated nodes make little or no geometry (docs/iv.md).
+MAX_NODES = 500_000
 
 _HEADERS = (b"#Inventor V", b"#VRML V1.0 ascii")
 
@@ -71,10 +86,11 @@ _Z_TO_Y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 class IVError(ValueError):
-    """An Inventor file is missing, not Inventor ASCII, malformed, or holds no surface."""
+    """An Inventor file is missing, not Inventor ASCII, malformed, holds no surface, or
+    expands past a budget."""
 
 
-@dataclasses.dataclass(eq=False)
+@dataclasses.dataclass(eq=False, repr=False, slots=True)
 class _Node:
     """A parsed node: ``fields`` maps names to a token list or a node; ``parsed`` is False
     for skipped node types."""
@@ -84,6 +100,15 @@ class _Node:
     fields: dict = dataclasses.field(default_factory=dict)
     children: list = dataclasses.field(default_factory=list)
     parsed: bool = True
+    name: str | None = None  # the DEF name, for error messages
+    # {position in children: (line, name)} of the children that are a USE, for errors.
+    uses: dict | None = None
+    # What traversal derived from this node alone (coordinates, matrix, local mesh), so a
+    # node that USE repeats is read once.
+    cache: dict = dataclasses.field(default_factory=dict)
+
+    def __repr__(self) -> str:  # not the dataclass's: that one recurses into children
+        return f"<{_label(self)} on line {self.line}: {len(self.children)} children>"
 
 
 @dataclasses.dataclass
@@ -93,6 +118,14 @@ class _State:
 
     matrix: np.ndarray
     coords: np.ndarray
+    _mirrors: tuple = (None, False)  # (matrix, whether it mirrors), computed once per matrix
+
+    def mirrors(self) -> bool:
+        matrix, mirrors = self._mirrors
+        if matrix is not self.matrix:
+            mirrors = bool(np.linalg.det(self.matrix[:3, :3]) < 0)
+            self._mirrors = (self.matrix, mirrors)
+        return mirrors
 
 
 # ----- public API -------------------------------------------------------------------------
@@ -115,8 +148,9 @@ def load_iv(path) -> trimesh.Trimesh:
     ------
     IVError
         (a ``ValueError``) if the file is missing, is not Inventor ASCII, is malformed
-        (unclosed braces or brackets, bad field values, indices out of range) or holds
-        no surface geometry.
+        (unclosed braces or brackets, bad field values, counts or indices out of range),
+        holds no surface geometry, or expands (through USE) past ``MAX_GEOMETRY``
+        vertices plus faces or ``MAX_NODES`` node visits.
     """
     path = Path(os.fspath(path))
     if not path.is_file():
@@ -136,32 +170,41 @@ def loads_iv(text: str, *, source: str = "<string>") -> trimesh.Trimesh:
 
     ``source`` names the text in error messages.
     """
-    nodes = _Parser(text, source).parse()
-    vertices, faces = [], []
-    state = _State(np.eye(4), np.empty((0, 3)))
-    for node in nodes:
-        _traverse(node, state, vertices, faces, source)
-    if not faces:
+    parser = _Parser(text, source)
+    scene = parser.parse()
+    _check_budget(scene, parser.max_coords, source)
+    pieces = _traverse(scene, source)
+    if not pieces:
         raise IVError(f"no surface geometry (no faces) found in {source}")
-    offsets = np.cumsum([0] + [len(v) for v in vertices[:-1]])
-    all_faces = np.concatenate([f + o for f, o in zip(faces, offsets, strict=True)])
-    return trimesh.Trimesh(np.concatenate(vertices), all_faces, process=False)
+    # Each piece goes to world coordinates straight into the result (no copy of it all).
+    vertices = np.empty((sum(len(piece[0]) for piece in pieces), 3))
+    faces = np.empty((sum(len(piece[1]) for piece in pieces), 3), dtype=np.int64)
+    v = f = 0
+    for homogeneous, triangles, matrix, mirrors in pieces:
+        world = homogeneous @ matrix.T
+        np.divide(world[:, :3], world[:, 3:], out=vertices[v:v + len(world)])
+        # A mirroring transform would turn the normals inward.
+        np.add(triangles[:, ::-1] if mirrors else triangles, v,
+               out=faces[f:f + len(triangles)])
+        v, f = v + len(world), f + len(triangles)
+    return trimesh.Trimesh(vertices, faces, process=False)
 
 
 # ----- tokenizer and parser ---------------------------------------------------------------
 def _tokenize(text: str, source: str) -> tuple[list[str], list[int]]:
-    """Tokens and their character offsets (for line numbers in errors)."""
-    tokens, offsets = [], []
+    """Tokens and their line numbers (for errors)."""
+    tokens, lines = [], []
+    line = 1
     for match in _TOKEN.finditer(text):
         token, bad = match.group(1), match.group(2)
         if bad is not None:
-            line = text.count("\n", 0, match.start()) + 1
             what = "unterminated string" if bad == '"' else f"unexpected character {bad!r}"
             raise IVError(f"{what} on line {line} of {source}")
         if token is not None:
             tokens.append(token)
-            offsets.append(match.start())
-    return tokens, offsets
+            lines.append(line)
+        line += match.group(0).count("\n")
+    return tokens, lines
 
 
 def _is_word(token: str | None) -> bool:
@@ -169,32 +212,69 @@ def _is_word(token: str | None) -> bool:
 
 
 class _Parser:
-    """Recursive-descent parser of the generic Inventor grammar.
+    """Parser of the generic Inventor grammar, with an explicit stack of open nodes (no
+    recursion, so any nesting depth the file holds).
 
     Without a schema, a field's value is read by its form: ``[...]``, ``(...)``, a node,
-    a run of numbers and strings, or one word (an enum, TRUE/FALSE, NULL).
+    a run of numbers and strings, or one word (an enum, TRUE/FALSE, NULL). A DEF name is
+    bound when its node closes, so a USE can only name a finished node: the scene graph
+    has no cycles.
     """
 
     def __init__(self, text: str, source: str):
-        self.text, self.source = text, source
-        self.tokens, self.offsets = _tokenize(text, source)
+        self.source = source
+        self.tokens, self.lines = _tokenize(text, source)
         self.pos = 0
         self.defs: dict[str, _Node] = {}
+        #: The most coordinates any Coordinate3 or VertexProperty holds (for the budget).
+        self.max_coords = 0
+        # Open nodes, innermost last: (node, DEF name, field it fills or None for a child).
+        self.open: list[tuple[_Node, str | None, str | None]] = []
+        self.scene = _Node("scene", 1)  # the top-level nodes are its children
+        # Stray '}' and USEs of undefined names, for one warning each however many there
+        # are (a hostile file could hold millions): (first line, name), count.
+        self.stray: tuple[int | None, int] = (None, 0)
+        self.undefined: tuple[tuple[int, str] | None, int] = (None, 0)
 
-    def parse(self) -> list[_Node]:
-        nodes = []
-        while self.peek() is not None:
-            if self.peek() == "}":
-                # GraspIt!'s arizonaObject_revised.iv ends with one '}' too many; Inventor
-                # readers stop at it, so we warn and go on rather than reject the model.
-                warnings.warn(f"ignoring unmatched '}}' on line {self.line()} of {self.source}",
-                              stacklevel=4)
-                self.pos += 1
+    def parse(self) -> _Node:
+        """The scene: a group of the top-level nodes."""
+        while True:
+            token = self.peek()
+            if not self.open:
+                if token is None:
+                    break
+                if token == "}":
+                    # GraspIt!'s arizonaObject_revised.iv ends with one '}' too many;
+                    # Inventor readers stop at it, so we warn and go on rather than
+                    # reject the model.
+                    self.stray = (self.stray[0] or self.line(), self.stray[1] + 1)
+                    self.pos += 1
+                else:
+                    self.node(None)
                 continue
-            node = self.node()
-            if node is not None:
-                nodes.append(node)
-        return nodes
+            node = self.open[-1][0]
+            if token is None:
+                raise IVError(f"unbalanced braces in {self.source}: the '{{' of {node.kind} "
+                              f"on line {node.line} is never closed")
+            if token == "}":
+                self.pos += 1
+                self.close()
+            elif token in ("DEF", "USE") or self.peek(1) == "{":
+                self.node(None)
+            elif _is_word(token):
+                self.pos += 1
+                self.value(token)
+            else:
+                raise self.error(f"unexpected {token!r} in {node.kind}")
+        if self.stray[1]:
+            line, n = self.stray
+            warnings.warn(f"ignoring unmatched '}}' on line {line} of {self.source}"
+                          + (f" (and {n - 1} more)" if n > 1 else ""), stacklevel=3)
+        if self.undefined[1]:
+            (line, name), n = self.undefined
+            warnings.warn(f"USE of undefined name {name!r} on line {line} of {self.source} "
+                          "ignored" + (f" (and {n - 1} more)" if n > 1 else ""), stacklevel=3)
+        return self.scene
 
     # -- helpers --
     def peek(self, ahead: int = 0) -> str | None:
@@ -203,28 +283,44 @@ class _Parser:
 
     def line(self, pos: int | None = None) -> int:
         pos = min(self.pos if pos is None else pos, len(self.tokens) - 1)
-        return self.text.count("\n", 0, self.offsets[pos]) + 1 if pos >= 0 else 1
+        return self.lines[pos] if pos >= 0 else 1
 
     def take(self, what: str) -> str:
         token = self.peek()
         if token is None:
-            raise IVError(f"unexpected end of file in {self.source}: expected {what}")
+            raise IVError(f"unexpected end of file on line {self.line()} of {self.source}: "
+                          f"expected {what}")
         self.pos += 1
         return token
 
     def error(self, message: str) -> IVError:
         return IVError(f"{message} on line {self.line()} of {self.source}")
 
+    def attach(self, node: _Node | None, field: str | None, use: tuple | None = None):
+        """Put a finished node (None: a USE of an unknown name) where it was found;
+        ``use`` is (line, name) if it came from a USE."""
+        parent = self.open[-1][0] if self.open else self.scene
+        if field is not None:
+            parent.fields[field] = node
+        elif node is not None:
+            if use is not None:
+                if parent.uses is None:
+                    parent.uses = {}
+                parent.uses[len(parent.children)] = use
+            parent.children.append(node)
+
     # -- grammar --
-    def node(self) -> _Node | None:
-        """``[DEF name] Kind { body }`` or ``USE name``; None for a USE of an unknown name."""
+    def node(self, field: str | None) -> None:
+        """``[DEF name] Kind { body }`` or ``USE name``, filling ``field`` of the open
+        node (its child list if None). A parsed kind stays open until its '}'."""
         token = self.take("a node")
         if token == "USE":
             name = self.take("a name after USE")
+            use = (self.line(self.pos - 1), name)
             if name not in self.defs:
-                warnings.warn(f"USE of undefined name {name!r} on line {self.line(self.pos - 1)} "
-                              f"of {self.source} ignored", stacklevel=5)
-            return self.defs.get(name)
+                self.undefined = (self.undefined[0] or use, self.undefined[1] + 1)
+            self.attach(self.defs.get(name), field, use)
+            return
         name = None
         if token == "DEF":
             name, token = self.take("a name after DEF"), self.take("a node after DEF")
@@ -233,46 +329,39 @@ class _Parser:
             raise self.error(f"expected a node name followed by '{{', got {token!r}")
         start = self.pos
         self.pos += 1
-        node = _Node(token, self.line(start))
+        node = _Node(token, self.line(start), name=name)
         if token in _PARSED:
-            self.body(node, start)
-        else:
-            self.skip_body(token, start)
-            node.parsed = False
+            self.open.append((node, name, field))
+            return
+        self.skip_body(node)
+        node.parsed = False
         if name is not None:
             self.defs[name] = node
-        return node
+        self.attach(node, field)
 
-    def body(self, node: _Node, start: int) -> None:
-        while True:
-            token = self.peek()
-            if token is None:
-                raise IVError(f"unbalanced braces in {self.source}: the '{{' of {node.kind} "
-                              f"on line {self.line(start)} is never closed")
-            if token == "}":
-                self.pos += 1
-                return
-            if token in ("DEF", "USE") or self.peek(1) == "{":
-                child = self.node()
-                if child is not None:
-                    node.children.append(child)
-            elif _is_word(token):
-                self.pos += 1
-                node.fields[token] = self.value(token)
-            else:
-                raise self.error(f"unexpected {token!r} in {node.kind}")
+    def close(self) -> None:
+        node, name, field = self.open.pop()
+        if name is not None:
+            self.defs[name] = node
+        if node.kind in _COORDINATES:
+            points = node.fields.get("point" if node.kind == "Coordinate3" else "vertex")
+            if isinstance(points, list):
+                self.max_coords = max(self.max_coords, len(points) // 3)
+        self.attach(node, field)
 
-    def skip_body(self, kind: str, start: int) -> None:
+    def skip_body(self, node: _Node) -> None:
         depth = 1
         while depth:
             token = self.peek()
             if token is None:
-                raise IVError(f"unbalanced braces in {self.source}: the '{{' of {kind} "
-                              f"on line {self.line(start)} is never closed")
+                raise IVError(f"unbalanced braces in {self.source}: the '{{' of {node.kind} "
+                              f"on line {node.line} is never closed")
             depth += (token == "{") - (token == "}")
             self.pos += 1
 
-    def value(self, field: str):
+    def value(self, field: str) -> None:
+        """Read the value of ``field`` of the open node."""
+        fields = self.open[-1][0].fields
         token = self.peek()
         if token in ("[", "("):
             close, start = "]" if token == "[" else ")", self.pos
@@ -285,19 +374,123 @@ class _Parser:
                 values.append(t)
                 self.pos += 1
             self.pos += 1
-            return values
-        if token in ("DEF", "USE") or (_is_word(token) and self.peek(1) == "{"):
-            return self.node()
-        if token is not None and (_NUMBER.match(token) or token.startswith('"')):
+            fields[field] = values
+        elif token in ("DEF", "USE") or (_is_word(token) and self.peek(1) == "{"):
+            self.node(field)
+        elif token is not None and (_NUMBER.match(token) or token.startswith('"')):
             values = []
             while (t := self.peek()) is not None and (_NUMBER.match(t) or t.startswith('"')):
                 values.append(t)
                 self.pos += 1
-            return values
-        if _is_word(token):
+            fields[field] = values
+        elif _is_word(token):
             self.pos += 1
-            return [token]
-        raise self.error(f"missing value for field {field!r}")
+            fields[field] = [token]
+        else:
+            raise self.error(f"missing value for field {field!r}")
+
+
+# ----- the budget ---------------------------------------------------------------------------
+@functools.cache
+def _solid_size(kind: str) -> int:
+    """Vertices plus faces of a solid: its default mesh is the largest (degenerate sizes
+    merge vertices or drop faces)."""
+    mesh = _solid(_Node(kind, 0), "")
+    return len(mesh.vertices) + len(mesh.faces)
+
+
+def _field_size(node: _Node, field: str) -> int:
+    value = node.fields.get(field)
+    return len(value) if isinstance(value, list) else 0
+
+
+def _shape_size(node: _Node, max_coords: int, source: str) -> int:
+    """The most vertices plus faces a shape can produce, whatever coordinates traversal
+    gives it (a face or strip set adds one per ``numVertices`` entry, which it reads)."""
+    if not node.parsed or node.kind not in _SOLIDS | _MESH_SHAPES:
+        return 0
+    if node.kind in _SOLIDS:
+        return _solid_size(node.kind)
+    prop = node.fields.get("vertexProperty")
+    if isinstance(prop, _Node) and "vertex" in prop.fields:
+        max_coords = _field_size(prop, "vertex") // 3  # the shape's own coordinates
+    if node.kind.startswith("Indexed"):
+        try:
+            index = _index_values(node, source)
+        except IVError:  # traversal reports it when it gets there
+            return 2 * _field_size(node, "coordIndex")
+        real, within, _ = _runs(index)
+        return int(np.count_nonzero(real & (within >= 2))
+                   + min(np.count_nonzero(real), max_coords))
+    # FaceSet, TriangleStripSet: polygons or strips of consecutive distinct coordinates.
+    vertices = faces = max_coords
+    counts = node.fields.get("numVertices")
+    if isinstance(counts, list):
+        try:
+            counts = np.trunc(np.array(counts, dtype=np.float64))
+        except ValueError:
+            counts = None  # traversal reports it
+        if counts is not None and np.all(counts >= 0) and np.all(np.isfinite(counts)):
+            vertices = min(vertices, counts.sum())
+            faces = min(faces, np.maximum(counts - 2, 0).sum())
+    return int(vertices + faces) + max(_field_size(node, "numVertices"), 1)
+
+
+def _label(node: _Node) -> str:
+    return f"DEF {node.name} {node.kind}" if node.name is not None else node.kind
+
+
+def _over_budget(budget: str, group: _Node, position: int, source: str) -> IVError:
+    """The error for the child at ``position`` of ``group`` taking it past ``budget``."""
+    child = group.children[position]
+    use = group.uses.get(position) if group.uses else None
+    line, entry = (use[0], f"USE {use[1]}") if use else (child.line, _label(child))
+    inside = "the scene" if group.kind == "scene" else f"{_label(group)} (line {group.line})"
+    what = "vertices and faces" if budget == "MAX_GEOMETRY" else "node visits"
+    return IVError(f"{entry} on line {line} of {source} takes {inside} past "
+                   f"{globals()[budget]:,} {what} (jaxfit.io.iv.{budget}; every USE counts "
+                   "as a copy of its node, see docs/iv.md)")
+
+
+def _check_budget(scene: _Node, max_coords: int, source: str) -> None:
+    """Raise IVError at the first USE or node that takes a group, or the scene, past
+    ``MAX_NODES`` visits or ``MAX_GEOMETRY`` vertices plus faces once USE is expanded.
+
+    One pass over the distinct nodes, without recursion: a group's totals are kept, so
+    each USE of it adds them without walking it again.
+    """
+    max_nodes, max_geometry = MAX_NODES, MAX_GEOMETRY
+    totals: dict[int, tuple[int, int]] = {}  # id(node) -> (visits, vertices + faces)
+    # Each frame: [group, positions of the children it shows, next one, visits, geometry].
+    frames: list[list] = [[scene, range(len(scene.children)), 0, 0, 0]]
+    while frames:
+        frame = frames[-1]
+        group, shown, i = frame[0], frame[1], frame[2]
+        if i == len(shown):
+            frames.pop()
+            if not frames:
+                return
+            totals[id(group)] = visits, geometry = frame[3], frame[4]
+            frame = frames[-1]
+            position = frame[1][frame[2] - 1]
+        else:
+            frame[2] += 1
+            position = shown[i]
+            child = group.children[position]
+            known = totals.get(id(child))
+            if known is not None:
+                visits, geometry = known
+            elif child.parsed and child.kind in _GROUPS:
+                frames.append([child, _shown(child, source, lenient=True), 0, 1, 0])
+                continue
+            else:
+                totals[id(child)] = visits, geometry = 1, _shape_size(child, max_coords, source)
+        frame[3] += visits
+        frame[4] += geometry
+        if frame[4] > max_geometry:
+            raise _over_budget("MAX_GEOMETRY", frame[0], position, source)
+        if frame[3] > max_nodes:
+            raise _over_budget("MAX_NODES", frame[0], position, source)
 
 
 # ----- field access -----------------------------------------------------------------------
@@ -329,12 +522,28 @@ def _vec3s(node: _Node, field: str, source: str) -> np.ndarray:
     return arr.reshape(-1, 3)
 
 
-def _indices(node: _Node, field: str, source: str) -> np.ndarray:
-    arr = _numbers(node, field, [], source)
-    if np.any(arr != np.round(arr)):
-        raise IVError(f"non-integer index in {field!r} of {node.kind} on line {node.line} "
-                      f"of {source}")
-    return arr.astype(np.int64)
+def _index_values(node: _Node, source: str) -> np.ndarray:
+    """``coordIndex`` as float64 numbers, each an integer >= -1 (-1 separates), read once
+    per node; the range is checked against the coordinates at each use."""
+    if "index" not in node.cache:
+        arr = _numbers(node, "coordIndex", [], source)
+        if np.any(arr != np.round(arr)):  # also NaN
+            raise IVError(f"non-integer index in 'coordIndex' of {node.kind} on line "
+                          f"{node.line} of {source}")
+        if np.any(arr < -1):
+            raise IVError(f"negative index other than -1 in {node.kind} on line {node.line} "
+                          f"of {source}")
+        node.cache["index"] = arr
+    return node.cache["index"]
+
+
+def _integer(node: _Node, field: str, default: int, source: str) -> int:
+    """A single-number field truncated to an int (Python's, so never an overflow)."""
+    value = float(_numbers(node, field, [default], source, 1)[0])
+    if not np.isfinite(value):
+        raise IVError(f"field {field!r} of {node.kind} on line {node.line} of {source} is "
+                      f"{value}, expected an integer")
+    return int(value)
 
 
 # ----- transforms ---------------------------------------------------------------------------
@@ -366,7 +575,8 @@ def _transform_matrix(node: _Node, source: str) -> np.ndarray | None:
     if kind == "Scale":
         return _scale(_numbers(node, "scaleFactor", [1, 1, 1], source, 3))
     if kind == "RotationXYZ":
-        axis = node.fields.get("axis", ["X"])
+        axis = node.fields.get("axis")
+        axis = ["X"] if axis is None else axis  # None also for a USE of an undefined name
         names = {"X": [1, 0, 0], "Y": [0, 1, 0], "Z": [0, 0, 1]}
         if isinstance(axis, _Node) or len(axis) != 1 or axis[0] not in names:
             raise IVError(f"RotationXYZ axis must be X, Y or Z (line {node.line} of {source})")
@@ -415,42 +625,80 @@ def _strip_triangles(index: np.ndarray) -> np.ndarray:
     return np.stack([np.where(odd, b, a), np.where(odd, a, b), c], axis=1).reshape(-1, 3)
 
 
-def _counts_to_index(counts: np.ndarray, available: int, start: int) -> np.ndarray:
-    """-1-separated consecutive indices for FaceSet/TriangleStripSet ``numVertices``; a
-    count of -1 takes all remaining coordinates."""
-    pieces, at = [], start
-    for count in counts.astype(np.int64):
+def _counts_to_index(node: _Node, available: int, source: str) -> np.ndarray:
+    """-1-separated consecutive indices for FaceSet/TriangleStripSet ``numVertices`` from
+    ``startIndex``; a negative count takes all remaining coordinates. The counts are
+    checked against the ``available`` coordinates before any index array is made."""
+    start = _integer(node, "startIndex", 0, source)
+    counts = _numbers(node, "numVertices", [-1], source)
+    if not 0 <= start <= available:
+        raise IVError(f"startIndex {start} of {node.kind} on line {node.line} of {source} "
+                      f"is outside the {available} coordinates defined")
+    if not np.all(np.isfinite(counts)):
+        raise IVError(f"non-finite count in 'numVertices' of {node.kind} on line "
+                      f"{node.line} of {source}")
+    resolved, at = [], start
+    for count in counts.tolist():
+        count = int(count)
         count = available - at if count < 0 else count
+        if count > available - at:
+            raise IVError(f"{node.kind} on line {node.line} of {source} asks for {count} "
+                          f"coordinates from coordinate {at}, but only {available} are "
+                          "defined")
+        resolved.append(count)
+        at += count
+    pieces, at = [], start
+    for count in resolved:
         pieces += [np.arange(at, at + count), [-1]]
         at += count
     return np.concatenate(pieces).astype(np.int64) if pieces else np.empty(0, np.int64)
 
 
+def _coordinates(node: _Node, field: str, source: str) -> np.ndarray:
+    """A node's coordinate field as (K, 3), read once per node."""
+    key = ("coords", field)
+    if key not in node.cache:
+        node.cache[key] = _vec3s(node, field, source)
+    return node.cache[key]
+
+
 def _shape_coords(node: _Node, state: _State, source: str) -> np.ndarray:
     prop = node.fields.get("vertexProperty")
     if isinstance(prop, _Node) and "vertex" in prop.fields:
-        return _vec3s(prop, "vertex", source)
+        return _coordinates(prop, "vertex", source)
     return state.coords
 
 
-def _mesh_shape(node: _Node, state: _State, source: str):
-    """Local vertices (K, 3) and triangles (T, 3) of a face or strip set."""
-    coords = _shape_coords(node, state, source)
-    strips = "Strip" in node.kind
+def _topology(faces):
+    """The non-degenerate triangles of ``faces`` as (used, triangles): the vertex indices
+    they use, sorted, and (T, 3) indices into ``used``; None if no triangle is left."""
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+                  & (faces[:, 0] != faces[:, 2])]
+    if not len(faces):
+        return None
+    used, faces = np.unique(faces, return_inverse=True)
+    return used, faces.reshape(-1, 3)
+
+
+def _mesh_topology(node: _Node, available: int, source: str):
+    """``_topology`` of a face or strip set given ``available`` coordinates; kept on the
+    node (an indexed set's does not depend on them once they suffice)."""
     if node.kind.startswith("Indexed"):
-        index = _indices(node, "coordIndex", source)
+        index = _index_values(node, source)
+        if index.size and index.max() >= available:
+            raise IVError(f"{node.kind} on line {node.line} of {source} uses coordinate "
+                          f"{index.max():.0f} but only {available} are defined")
+        key = None
     else:
-        start = int(_numbers(node, "startIndex", [0], source, 1)[0])
-        counts = _numbers(node, "numVertices", [-1], source)
-        index = _counts_to_index(counts, len(coords), start)
-    if np.any(index < -1):
-        raise IVError(f"negative index other than -1 in {node.kind} on line {node.line} "
-                      f"of {source}")
-    if index.size and index.max() >= len(coords):
-        raise IVError(f"{node.kind} on line {node.line} of {source} uses coordinate "
-                      f"{index.max()} but only {len(coords)} are defined")
-    faces = _strip_triangles(index) if strips else _fan_triangles(index)
-    return coords, faces
+        key = available
+    cached = node.cache.get("topology")
+    if cached is None or cached[0] != key:
+        index = (index.astype(np.int64) if key is None
+                 else _counts_to_index(node, available, source))
+        faces = _strip_triangles(index) if "Strip" in node.kind else _fan_triangles(index)
+        cached = node.cache["topology"] = (key, _topology(faces))
+    return cached[1]
 
 
 def _solid(node: _Node, source: str) -> trimesh.Trimesh:
@@ -475,51 +723,98 @@ def _solid(node: _Node, source: str) -> trimesh.Trimesh:
     return mesh.apply_transform(to_y @ _translate([0.0, 0.0, -0.5 * height]))
 
 
-def _emit(vertices, faces, matrix, out_vertices, out_faces) -> None:
-    """Transform local vertices (K, 3) to world and keep the non-degenerate triangles."""
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
-                  & (faces[:, 0] != faces[:, 2])]
-    if not len(faces):
-        return
-    used, faces = np.unique(faces, return_inverse=True)
-    faces = faces.reshape(-1, 3)
+def _placed(vertices, topology):
+    """A ``_topology`` with its used vertices in homogeneous coordinates (K, 4)."""
+    if topology is None:
+        return None
+    used, faces = topology
     local = np.asarray(vertices, dtype=np.float64)[used]
-    world = np.c_[local, np.ones(len(local))] @ matrix.T
-    world = world[:, :3] / world[:, 3:]
-    if np.linalg.det(matrix[:3, :3]) < 0:
-        faces = faces[:, ::-1]  # a mirroring transform would turn the normals inward
-    out_vertices.append(world)
-    out_faces.append(faces)
+    return np.c_[local, np.ones(len(local))], faces
 
 
-def _traverse(node: _Node, state: _State, out_vertices, out_faces, source: str) -> None:
-    kind = node.kind
-    if not node.parsed:
-        return
-    if kind in _GROUPS:
-        inner = _State(state.matrix, state.coords) if kind in _SEPARATORS else state
-        children = node.children
-        if kind == "Switch":
-            # whichChild: -1 (the default) shows no child, -3 all of them.
-            which = int(_numbers(node, "whichChild", [-1], source, 1)[0])
-            if which != -3:
-                children = children[which:which + 1] if which >= 0 else []
-        for child in children:
-            _traverse(child, inner, out_vertices, out_faces, source)
-        if kind == "TransformSeparator":
-            state.coords = inner.coords  # only the matrix is restored
-    elif kind in _TRANSFORMS:
-        local = _transform_matrix(node, source)
-        state.matrix = np.eye(4) if local is None else state.matrix @ local
-    elif kind == "Coordinate3":
-        state.coords = _vec3s(node, "point", source)
-    elif kind == "VertexProperty":
-        if "vertex" in node.fields:
-            state.coords = _vec3s(node, "vertex", source)
-    elif kind in _MESH_SHAPES:
-        vertices, faces = _mesh_shape(node, state, source)
-        _emit(vertices, faces, state.matrix, out_vertices, out_faces)
-    elif kind in _SOLIDS:
-        mesh = _solid(node, source)
-        _emit(mesh.vertices, mesh.faces, state.matrix, out_vertices, out_faces)
+def _shape_mesh(node: _Node, state: _State, source: str):
+    """A shape's local mesh for ``_emit`` (None if it has no triangle), kept on the node
+    for as long as traversal gives it the same coordinates (a solid's never change)."""
+    if node.kind in _SOLIDS:
+        if "mesh" not in node.cache:
+            mesh = _solid(node, source)
+            node.cache["mesh"] = _placed(mesh.vertices, _topology(mesh.faces))
+        return node.cache["mesh"]
+    coords = _shape_coords(node, state, source)
+    cached = node.cache.get("mesh")
+    if cached is None or cached[0] is not coords:
+        topology = _mesh_topology(node, len(coords), source)
+        cached = node.cache["mesh"] = (coords, _placed(coords, topology))
+    return cached[1]
+
+
+def _emit(mesh, state: _State, pieces: list) -> None:
+    """Keep a ``_shape_mesh`` with the matrix to world coordinates (applied at the end,
+    into the result)."""
+    if mesh is not None:
+        pieces.append((*mesh, state.matrix, state.mirrors()))
+
+
+def _shown(node: _Node, source: str, lenient: bool = False) -> range:
+    """The positions of the children a group shows: a Switch follows ``whichChild`` (-1,
+    the default, shows none, -3 all). ``lenient``: all of a Switch's children if that
+    field is bad (the budget's upper bound; traversal then reports the error)."""
+    count = len(node.children)
+    if node.kind != "Switch":
+        return range(count)
+    if "shown" not in node.cache:
+        try:
+            which = _integer(node, "whichChild", -1, source)
+        except IVError:
+            if lenient:
+                return range(count)
+            raise
+        if which == -3:
+            node.cache["shown"] = range(count)
+        else:
+            node.cache["shown"] = range(which, min(which + 1, count)) if which >= 0 else range(0)
+    return node.cache["shown"]
+
+
+def _local_matrix(node: _Node, source: str) -> np.ndarray | None:
+    if "matrix" not in node.cache:
+        node.cache["matrix"] = _transform_matrix(node, source)
+    return node.cache["matrix"]
+
+
+def _traverse(scene: _Node, source: str) -> list:
+    """Walk the scene in order with an explicit stack (any depth); the ``_emit`` pieces of
+    its shapes."""
+    pieces: list = []
+    root = _State(np.eye(4), np.empty((0, 3)))
+    # Each frame: (children left, the state they see, the state outside the group, group).
+    stack = [(iter(scene.children), root, root, scene)]
+    while stack:
+        children, state, outer, group = stack[-1]
+        node = next(children, None)
+        if node is None:
+            stack.pop()
+            if group.kind == "TransformSeparator":
+                outer.coords = state.coords  # only the matrix is restored
+            continue
+        kind = node.kind
+        if not node.parsed:
+            continue
+        if kind in _GROUPS:
+            inner = (_State(state.matrix, state.coords, state._mirrors) if kind in _SEPARATORS
+                     else state)
+            shown = _shown(node, source)
+            children = (iter(node.children) if len(shown) == len(node.children)
+                        else (node.children[i] for i in shown))
+            stack.append((children, inner, state, node))
+        elif kind in _TRANSFORMS:
+            local = _local_matrix(node, source)
+            state.matrix = np.eye(4) if local is None else state.matrix @ local
+        elif kind == "Coordinate3":
+            state.coords = _coordinates(node, "point", source)
+        elif kind == "VertexProperty":
+            if "vertex" in node.fields:
+                state.coords = _coordinates(node, "vertex", source)
+        elif kind in _MESH_SHAPES or kind in _SOLIDS:
+            _emit(_shape_mesh(node, state, source), state, pieces)
+    return pieces
