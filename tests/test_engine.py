@@ -66,6 +66,16 @@ def test_unknown_or_wrong_options_are_named():
         FitOptions(min_hypotheses=True).check(Sphere)
 
 
+def test_a_kept_check_does_not_pass_equal_values_of_another_type():
+    """Checks are kept per options; 256.0 == 256 and True == 1, but only one of each is
+    valid, whichever was checked first."""
+    assert FitOptions(batch_size=256, min_hypotheses=1).check(Sphere).batch_size == 256
+    with pytest.raises(ValueError, match="batch_size must be a positive integer"):
+        FitOptions(batch_size=256.0, min_hypotheses=1).check(Sphere)
+    with pytest.raises(ValueError, match="min_hypotheses must be a non-negative integer"):
+        FitOptions(batch_size=256, min_hypotheses=True).check(Sphere)
+
+
 def test_check_resolves_for_the_shape_and_is_idempotent():
     checked = FitOptions(batch_size=np.int64(128), radius_range=(0.5, 2)).check(Cylinder)
     assert checked.batch_size == 128 and type(checked.batch_size) is int

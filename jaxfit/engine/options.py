@@ -198,13 +198,14 @@ class FitOptions:
 
     def check(self, shape: type[Model]) -> FitOptions:
         """The checked options for fitting ``shape`` (see the class docstring); kept for
-        hashable options (a small fit spent ~15 us checking the same ones again)."""
+        hashable options (a small fit spent ~15 us checking the same ones again), keyed
+        on the fields' types too, since 256.0 == 256 and True == 1 check differently."""
         try:
-            return _checked(self, shape)
-        except TypeError as err:  # unhashable settings (lists, arrays): check them now
-            if "unhashable" not in str(err):
-                raise
+            hash(self)
+        except TypeError:  # unhashable settings (lists, arrays): check them now
             return self._check(shape)
+        types = tuple(type(getattr(self, f.name)) for f in dataclasses.fields(self))
+        return _checked(self, shape, types)
 
     def _check(self, shape: type[Model]) -> FitOptions:
         est = shape.estimator(self.estimator)
@@ -240,5 +241,5 @@ class FitOptions:
 
 
 @functools.lru_cache(maxsize=256)
-def _checked(options: FitOptions, shape: type[Model]) -> FitOptions:
+def _checked(options: FitOptions, shape: type[Model], types: tuple) -> FitOptions:
     return options._check(shape)
