@@ -223,7 +223,7 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     progress : print the stages to stderr.
     """
     started = time.perf_counter()
-    if isinstance(shapes, str) or isinstance(shapes, type):  # one shape, not its letters
+    if isinstance(shapes, str | type):  # one shape, not its letters
         shapes = [shapes]
     classes = [_checks.model_class(s) for s in shapes]
     if isinstance(reassign, bool) or not isinstance(reassign, numbers.Integral) or reassign < 0:

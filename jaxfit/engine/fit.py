@@ -104,8 +104,9 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     if seed is None:  # (an int seed becomes a key only where one is needed)
         key = _checks.prng_key(key)
     uses_normals = cls.estimator(checked.estimator).uses_normals
-    named = (lambda i, err: type(err)(f"cloud {i}: {err}")) if len(clouds) > 1 else (
-        lambda i, err: err)
+    def named(i, err):  # the error, naming its cloud when there are several
+        return type(err)(f"cloud {i}: {err}") if len(clouds) > 1 else err
+
     results: list[FitResult | None] = [None] * len(clouds)
     prepared, which = [], []  # the clouds that go to the loop, and their places
     for i, points in enumerate(clouds):

@@ -32,7 +32,7 @@ _keys_of_seed = stored_jit(_seed_keys, ("slots",))
 
 def cloud_keys(key, slots: int):
     """(slots,) keys fold_in(key, i) for the clouds i < slots."""
-    return _keys_of_key(key, np.arange(slots, dtype=np.int32))
+    return keys_at(key, np.arange(slots))
 
 
 def keys_at(key, indices):
