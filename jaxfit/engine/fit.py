@@ -70,9 +70,12 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
               **settings) -> list[FitResult | None]:
     """Fit one primitive to each of several clouds, all in the same compiled calls.
 
-    The clouds are padded to one point bucket (and their count to a power of two) and
-    each kernel call scores H hypotheses for every cloud at once; each cloud keeps its own
-    stopping state, exactly as ``fit`` would (``fit`` is this with one cloud).
+    Clouds of similar sizes are padded to one point bucket (and their count to a power
+    of two) and each kernel call scores H hypotheses for every one of them at once;
+    clouds of very different sizes run in separate loops (``loop.call_groups``), so a
+    small cloud is never padded to a large one's bucket. Each cloud keeps its own key and
+    stopping state, exactly as ``fit`` would (``fit`` is this with one cloud): its result
+    does not depend on the other clouds of the call, up to float rounding.
 
     Parameters
     ----------

@@ -1,6 +1,7 @@
 """The host loop: batches of hypotheses for all clouds of a call in lockstep, each cloud
 with its own best model and stopping state (optimistix's one loop for every solver:
-init, then step -> refine -> terminate per batch).
+init, then step -> refine -> terminate per batch). The clouds of a call are first split
+into groups of similar point buckets (``call_groups``), one padded loop each.
 """
 
 from __future__ import annotations
@@ -17,6 +18,39 @@ from .keys import cloud_keys, keys_at, seed_cloud_keys
 from .options import Bounds, FitOptions
 from .refine import lo_rows
 from .stopping import Status
+
+#: Clouds of different point buckets share one padded loop while its padded points
+#: (slots x bucket) stay within SHARE_FACTOR times those of one loop per bucket, or
+#: within SHARE_POINTS (docs/engine.md, "Grouping clouds by bucket").
+SHARE_FACTOR = 2
+SHARE_POINTS = 1 << 16
+
+
+def call_groups(sizes, devices: int = 1) -> list[list[int]]:
+    """The clouds (indices into ``sizes``, each cloud's point count) of each padded loop,
+    in their order of the call, groups by increasing bucket.
+
+    The clouds are sorted by ``bucket_size``, one group per bucket; going up the buckets,
+    the next is merged into the last group while the merged loop's padded points
+    ``slots(count, devices) * bucket`` stay within ``SHARE_FACTOR`` times the sum of its
+    buckets' own loops, or within ``SHARE_POINTS``. Memory is then bounded by what the
+    clouds need (tiny clouds are never padded to a big one's bucket), and clouds of
+    similar sizes still share one loop (one host loop, one compiled shape)."""
+    by_bucket: dict[int, list[int]] = {}
+    for i, n in enumerate(sizes):
+        by_bucket.setdefault(bucket_size(n), []).append(i)
+    groups: list[tuple[list[int], int]] = []  # (clouds, padded points of separate loops)
+    for bucket in sorted(by_bucket):
+        clouds = by_bucket[bucket]
+        alone = slots(len(clouds), devices) * bucket
+        if groups:
+            merged, separate = groups[-1][0] + clouds, groups[-1][1] + alone
+            if slots(len(merged), devices) * bucket <= max(SHARE_FACTOR * separate,
+                                                           SHARE_POINTS):
+                groups[-1] = (merged, separate)
+                continue
+        groups.append((clouds, alone))
+    return [sorted(clouds) for clouds, _ in groups]
 
 
 def subset_rows(mask: np.ndarray, multiple: int = 1):
@@ -47,13 +81,31 @@ def _keys(key, seed, which, count: int, rows_count: int):
 
 def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
            which=None):
-    """Run the checked ``options`` on the prepared clouds; ``key`` is the call's JAX key,
-    or None with the int ``seed`` it stands for; ``which``: each cloud's index in the
-    call (its key is fold_in(key, index); default 0, 1, ...).
+    """Run the checked ``options`` on the prepared clouds, one ``search_group`` per group
+    of ``call_groups``; ``key`` is the call's JAX key, or None with the int ``seed`` it
+    stands for; ``which``: each cloud's index in the call (its key is
+    fold_in(key, index); default 0, 1, ...).
 
     Returns the best theta (C, P) per cloud (NaN where none was valid), hypotheses drawn
-    (C,) and the Status (C,) of each cloud.
+    (C,) and the Status (C,) of each cloud, in the order of ``clouds``.
     """
+    which = list(range(len(clouds))) if which is None else list(which)
+    groups = call_groups([c.points.shape[0] for c in clouds], len(jax.local_devices()))
+    if len(groups) == 1:
+        return search_group(cls, options, clouds, key, seed, which)
+    theta = np.full((len(clouds), cls.num_params), np.nan)
+    drawn = np.zeros(len(clouds), int)
+    status = np.empty(len(clouds), dtype=object)
+    for group in groups:
+        found = search_group(cls, options, [clouds[j] for j in group], key, seed,
+                             [which[j] for j in group])
+        theta[group], drawn[group], status[group] = found
+    return theta, drawn, status
+
+
+def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
+                 which=None):
+    """``search`` for clouds that share one loop: padded to the largest one's bucket."""
     est = cls.estimator(options.estimator)
     count = len(clouds)
     devices = jax.local_devices()

@@ -1,0 +1,94 @@
+"""fit_batch groups its clouds by point bucket (issue 14, bounded memory): tiny clouds are
+never padded to a big one's bucket, clouds of similar sizes still share one loop, and a
+cloud's result is the one it gets in a call of its own group alone."""
+
+import numpy as np
+import pytest
+
+import jaxfit
+from jaxfit.engine import bucket_size, loop
+from jaxfit.engine.backend import slots
+from jaxfit.evaluation.synthetic import demo_cloud
+
+
+def padded_points(sizes, devices=1):
+    """A loop's padded points: slots x the largest bucket."""
+    return slots(len(sizes), devices) * max(bucket_size(n) for n in sizes)
+
+
+def test_tiny_clouds_and_one_big_run_apart():
+    assert loop.call_groups([100] * 127 + [10**6]) == [list(range(127)), [127]]
+    assert loop.call_groups([100] * 511 + [10**6]) == [list(range(511)), [511]]
+    # Groups go by increasing bucket; within one, the clouds keep their call order.
+    assert loop.call_groups([10**6, 100, 90]) == [[1, 2], [0]]
+
+
+def test_similar_clouds_share_one_loop():
+    assert loop.call_groups([2000, 700, 1500]) == [[0, 1, 2]]  # the suite's batches
+    assert loop.call_groups([5000] * 300) == [list(range(300))]  # one bucket: one loop
+    # Within SHARE_POINTS padded points, any mix shares (a few PSDA parts).
+    assert loop.call_groups([100, 10000, 200, 4000]) == [[0, 1, 2, 3]]
+    # Above it, while the merged loop pads at most SHARE_FACTOR x the separate ones:
+    # 64 x 2048 against 2 x (64 x 1024 + 2 x 2048).
+    assert loop.call_groups([1000] * 62 + [2000] * 2) == [list(range(64))]
+    # ... and not beyond: 64 x 2048 against 2 x (32 x 1024 + 1 x 2048).
+    assert loop.call_groups([1000] * 32 + [2000]) == [list(range(32)), [32]]
+
+
+@pytest.mark.parametrize("devices", [1, 8])
+def test_groups_partition_the_clouds_within_the_rule(devices):
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        sizes = [int(n) for n in np.exp(rng.uniform(np.log(10), np.log(3e6), rng.integers(1, 300)))]
+        groups = loop.call_groups(sizes, devices)
+        assert sorted(i for g in groups for i in g) == list(range(len(sizes)))
+        assert all(g == sorted(g) for g in groups)
+        buckets = [[bucket_size(sizes[i]) for i in g] for g in groups]
+        assert all(max(a) < min(b) for a, b in zip(buckets, buckets[1:], strict=False))
+        for g in groups:
+            separate = sum(padded_points([sizes[i] for i in g if bucket_size(sizes[i]) == b],
+                                         devices) for b in {bucket_size(sizes[i]) for i in g})
+            assert padded_points([sizes[i] for i in g], devices) <= max(
+                loop.SHARE_FACTOR * separate, loop.SHARE_POINTS)
+
+
+def clouds_and_kernel_shapes(monkeypatch):
+    """32 small spheres and one of 2000 points (two loops: see the first assert), and the
+    list the (slots, bucket) of every kernel call goes to."""
+    clouds = [demo_cloud("sphere", count=2000, seed=40)[0]]
+    clouds += [demo_cloud("sphere", count=300, seed=i)[0] for i in range(32)]
+    assert loop.call_groups([len(c) for c in clouds]) == [list(range(1, 33)), [0]]
+    shapes = []
+    kernel = loop.batch_best_many
+    monkeypatch.setattr(loop, "batch_best_many",
+                        lambda *a, **k: shapes.append(a[3].shape[:2]) or kernel(*a, **k))
+    return clouds, shapes
+
+
+def test_small_clouds_are_not_padded_to_a_larger_bucket(monkeypatch):
+    clouds, shapes = clouds_and_kernel_shapes(monkeypatch)
+    jaxfit.fit_batch(clouds, "sphere", key=3)
+    # The 32 small clouds ran at bucket 1024 (then 2 of their 32 rows: subset_rows),
+    # the large one alone at 2048; before, all 33 were padded to 64 x 2048.
+    assert set(shapes) <= {(32, 1024), (2, 1024), (1, 2048)}
+    assert (32, 1024) in shapes and (1, 2048) in shapes
+
+
+@pytest.mark.parametrize("key", [3, "jax"])
+def test_grouped_clouds_get_their_results_of_separate_calls(monkeypatch, key):
+    import jax
+
+    key = jax.random.key(11) if key == "jax" else key
+    clouds, _ = clouds_and_kernel_shapes(monkeypatch)
+    together = jaxfit.fit_batch(clouds, "sphere", key=key)
+    # The same clouds in calls of their own, under the same keys fold_in(key, i): the
+    # large one is cloud 0 of fit; the small ones are clouds 1.. after a skipped one.
+    coincident = np.zeros((10, 3))
+    small = jaxfit.fit_batch([coincident] + clouds[1:], "sphere", key=key,
+                             skip_failures=True)
+    assert small[0] is None
+    separate = [jaxfit.fit(clouds[0], "sphere", key=key)] + small[1:]
+    for a, b in zip(together, separate, strict=True):
+        assert a.model.to_dict() == b.model.to_dict()
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+        assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
