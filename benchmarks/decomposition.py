@@ -8,6 +8,7 @@ thesis's gains on one model and writes ``gain_sweep.md`` and ``summary.md``.
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -33,6 +34,8 @@ GAINS = (0.80, 0.85, 0.90, 0.96, 0.98, 0.99)
 
 
 def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.parse_args()  # (no options: --help describes the run and writes nothing)
     if not DATA.is_dir():
         raise SystemExit(f"no shared data at {DATA}")
     RESULTS.mkdir(parents=True, exist_ok=True)
