@@ -47,6 +47,14 @@ new primitive is its own file plus its import in ``jaxfit/shapes/__init__.py``:
 - ``axial_bounds``: whether the bounds are an interval along the axis (the PSDA re-bounds
   such primitives on the whole cloud).
 
+Pose and mass, for simulators and grasping (docs/robot.md): ``transform()`` (4, 4), the
+canonical frame ``trimesh.creation`` builds the primitive in (+Z the axis of a cylinder,
+from a cone's base to its apex, a plane's normal at its patch centre); ``volume()``,
+``surface_area()`` (the closed surface, where ``area()`` is the sampled one),
+``centroid()`` (3,), ``unit_inertia()`` (3,) principal moments per unit mass in that frame;
+from these the base class gives ``mass(density)`` and ``inertia(density)`` (3, 3) about the
+centroid in the cloud's axes, and ``mass_properties`` combines several primitives.
+
 The fields hold one primitive: ``center`` is (3,), not (..., 3). ``to_dict``,
 ``from_dict`` and ``rescaled`` also work on fields with leading batch axes; the geometric
 methods (``theta``, ``residual``, ``distance``, ``sample``, ``to_mesh``, ...) do not.
@@ -218,6 +226,40 @@ class Model:
         (count, 3), from the NumPy generator ``rng``."""
         raise NotImplementedError
 
+    # ----- pose and mass: simulators and grasping (see the module docstring) -----------
+    def transform(self) -> np.ndarray:
+        """(4, 4) pose of the primitive's canonical frame in the cloud's coordinates: the
+        ``transform=`` that ``trimesh.creation`` builds its mesh with (``to_mesh``)."""
+        raise NotImplementedError
+
+    def volume(self) -> float:
+        """Volume of the closed, bounded solid."""
+        raise NotImplementedError
+
+    def surface_area(self) -> float:
+        """Area of the closed, bounded surface, caps and base included (``area`` is the
+        sampled surface's)."""
+        raise NotImplementedError
+
+    def centroid(self) -> np.ndarray:
+        """(3,) centre of mass of the solid at uniform density."""
+        raise NotImplementedError
+
+    def unit_inertia(self) -> np.ndarray:
+        """(3,) principal moments of inertia per unit mass about ``centroid``, about the
+        axes of ``transform``'s rotation (its columns)."""
+        raise NotImplementedError
+
+    def mass(self, density: float = 1.0) -> float:
+        """Mass of the solid at ``density`` (mass per unit volume): density * volume."""
+        return check_density(density) * self.volume()
+
+    def inertia(self, density: float = 1.0) -> np.ndarray:
+        """(3, 3) inertia tensor of the solid at ``density`` about its centre of mass
+        (``centroid``), in the cloud's axes: R diag(mass * unit_inertia) R^T."""
+        rot = self.transform()[:3, :3]
+        return (rot * (self.mass(density) * self.unit_inertia())) @ rot.T
+
     # ----- facts for scenes, scenarios and the evaluation (see the module docstring) -----
     #: Share of the sampled surface's area that ``random_cut`` deletes.
     removed_share: ClassVar[float]
@@ -336,6 +378,43 @@ class Cut:
         if self.face is None:
             return beyond
         return beyond & model.on_face(points, self.face)
+
+
+def check_density(density) -> float:
+    """``density`` as a float, or ValueError unless it is a positive finite number."""
+    if isinstance(density, bool) or not isinstance(density, int | float | np.number):
+        raise ValueError(f"density must be a positive number, got {density!r}")
+    if not (np.isfinite(density) and density > 0):
+        raise ValueError(f"density must be positive and finite, got {density!r}")
+    return float(density)
+
+
+def mass_properties(models, density: float = 1.0):
+    """Mass (), centre of mass (3,) and inertia tensor (3, 3) about it, in the cloud's
+    axes, of several primitives as one rigid body of uniform ``density``: their masses
+    add, their tensors move to the common centre by the parallel-axis theorem. Where
+    primitives overlap, the overlap counts once per primitive. Primitives without volume
+    (planes) add nothing; with no mass at all the centre is the mean of the centroids."""
+    models = list(models)
+    if not models:
+        raise ValueError("mass_properties needs at least one primitive")
+    masses = np.array([m.mass(density) for m in models])
+    return combine(masses, np.array([m.centroid() for m in models]),
+                   np.array([m.inertia(density) for m in models]))
+
+
+def combine(masses, centroids, inertias):
+    """(mass (), centre (3,), inertia (3, 3)) of bodies with masses (P,), centres of mass
+    (P, 3) and inertia tensors (P, 3, 3) about them, rigidly joined: the tensors move to
+    the common centre by the parallel-axis theorem, I + m (|d|^2 E - d d^T)."""
+    masses, centroids = np.asarray(masses, np.float64), np.asarray(centroids, np.float64)
+    total = float(masses.sum())
+    centre = (masses @ centroids / total) if total > 0 else centroids.mean(axis=0)
+    d = centroids - centre
+    shift = (np.einsum("pi,pi->p", d, d)[:, None, None] * np.eye(3)
+             - d[:, :, None] * d[:, None, :])
+    tensor = np.asarray(inertias, np.float64).sum(axis=0) + np.einsum("p,pij->ij", masses, shift)
+    return total, centre, 0.5 * (tensor + tensor.T)
 
 
 def as_points(points):

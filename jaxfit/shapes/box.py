@@ -178,10 +178,27 @@ class Box(Model):
         return np.abs(self.residual(points))
 
     def to_mesh(self):
-        matrix = g.transform(self._array("rotation"), self._array("center"))
         import trimesh
 
-        return trimesh.creation.box(extents=self._array("extents"), transform=matrix)
+        return trimesh.creation.box(extents=self._array("extents"), transform=self.transform())
+
+    # ----- pose and mass ------------------------------------------------------------------
+    def transform(self):
+        """The box's axes (``rotation``) at its centre."""
+        return g.transform(self._array("rotation"), self._array("center"))
+
+    def volume(self):
+        return float(np.prod(self._array("extents")))
+
+    def surface_area(self):
+        return self.area()
+
+    def centroid(self):
+        return self._array("center")
+
+    def unit_inertia(self):
+        sq = self._array("extents") ** 2
+        return np.array([sq[1] + sq[2], sq[0] + sq[2], sq[0] + sq[1]]) / 12.0
 
     # ----- facts for scenes, scenarios and the evaluation ---------------------------------
     #: The thesis deletes a strip of 10 % of the area (``random_cut``).

@@ -145,15 +145,35 @@ class Cone(Model):
         return np.minimum(side, base)
 
     def to_mesh(self, sections: int = 64):
-        # trimesh's cone has its base at z = 0 and its apex at +z; ours points along -axis.
-        axis = self._array("axis")
-        matrix = g.transform(g.frame(-axis), self._array("apex") + self.height * axis)
         import trimesh
 
         return trimesh.creation.cone(
             radius=float(self.base_radius), height=float(self.height), sections=sections,
-            transform=matrix,
+            transform=self.transform(),
         )
+
+    # ----- pose and mass ------------------------------------------------------------------
+    def transform(self):
+        """trimesh's cone has its base at z = 0 and its apex at +z: +Z along ``-axis``
+        (``_geometry.frame``), at the base's centre."""
+        axis = self._array("axis")
+        return g.transform(g.frame(-axis), self._array("apex") + float(self.height) * axis)
+
+    def volume(self):
+        return np.pi * float(self.base_radius) ** 2 * float(self.height) / 3.0
+
+    def surface_area(self):
+        """The side and the base."""
+        return self.area() + np.pi * float(self.base_radius) ** 2
+
+    def centroid(self):
+        """Three quarters of the way from the apex to the base."""
+        return self._array("apex") + 0.75 * float(self.height) * self._array("axis")
+
+    def unit_inertia(self):
+        r2, h2 = float(self.base_radius) ** 2, float(self.height) ** 2
+        across = 3.0 / 20.0 * r2 + 3.0 / 80.0 * h2
+        return np.array([across, across, 0.3 * r2])
 
     # ----- facts for scenes, scenarios and the evaluation ---------------------------------
     removed_share: ClassVar[float] = 0.5

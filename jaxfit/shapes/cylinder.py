@@ -106,13 +106,31 @@ class Cylinder(Model):
         return np.abs(outside + np.minimum(np.maximum(dx, dy), 0.0))
 
     def to_mesh(self, sections: int = 64):
-        matrix = g.transform(g.frame(self.axis), self.center)
         import trimesh
 
         return trimesh.creation.cylinder(
             radius=float(self.radius), height=float(self.height), sections=sections,
-            transform=matrix,
+            transform=self.transform(),
         )
+
+    # ----- pose and mass ------------------------------------------------------------------
+    def transform(self):
+        """+Z along ``axis`` (``_geometry.frame``), at the centre."""
+        return g.transform(g.frame(self._array("axis")), self._array("center"))
+
+    def volume(self):
+        return np.pi * float(self.radius) ** 2 * float(self.height)
+
+    def surface_area(self):
+        """The side and both caps."""
+        return self.area() + 2.0 * np.pi * float(self.radius) ** 2
+
+    def centroid(self):
+        return self._array("center")
+
+    def unit_inertia(self):
+        r2, h2 = float(self.radius) ** 2, float(self.height) ** 2
+        return np.array([(3.0 * r2 + h2) / 12.0, (3.0 * r2 + h2) / 12.0, 0.5 * r2])
 
     # ----- facts for scenes, scenarios and the evaluation ---------------------------------
     removed_share: ClassVar[float] = 0.5

@@ -108,8 +108,33 @@ class Plane(Model):
     def to_mesh(self, sections: int = 64):
         if self.radius is None:
             raise ValueError("an unbounded plane has no mesh; fit it to get a bounded patch")
-        matrix = g.transform(g.frame(self.normal), self.center)
-        return _disk(float(self.radius), sections, matrix)
+        return _disk(float(self.radius), sections, self.transform())
+
+    # ----- pose and mass ------------------------------------------------------------------
+    def transform(self):
+        """+Z along ``normal`` (``_geometry.frame``), at the patch's centre."""
+        if self.center is None:
+            raise ValueError("an unbounded plane has no pose; fit it to get a bounded patch")
+        return g.transform(g.frame(self._array("normal")), self._array("center"))
+
+    def volume(self):
+        """0: a plane is a surface. Its mass is 0 and its inertia the zero tensor at any
+        density (a patch of vanishing thickness); simulator models give it a thin disk
+        without mass (``jaxfit.io.sim``)."""
+        return 0.0
+
+    def surface_area(self):
+        """The disk patch (one side)."""
+        return self.area()
+
+    def centroid(self):
+        """The patch's centre."""
+        return self.transform()[:3, 3]
+
+    def unit_inertia(self):
+        """A thin disk's, per unit mass (its mass is 0)."""
+        r2 = float(self.radius) ** 2
+        return np.array([0.25 * r2, 0.25 * r2, 0.5 * r2])
 
     # ----- facts for scenes, scenarios and the evaluation ---------------------------------
     removed_share: ClassVar[float] = 0.5

@@ -89,8 +89,24 @@ class Sphere(Model):
         import trimesh
 
         mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=float(self.radius))
-        mesh.apply_translation(self._array("center"))
-        return mesh
+        return mesh.apply_transform(self.transform())
+
+    # ----- pose and mass ------------------------------------------------------------------
+    def transform(self):
+        """The cloud's axes at the centre (a sphere has no axes of its own)."""
+        return g.transform(np.eye(3), self._array("center"))
+
+    def volume(self):
+        return 4.0 / 3.0 * np.pi * float(self.radius) ** 3
+
+    def surface_area(self):
+        return self.area()
+
+    def centroid(self):
+        return self._array("center")
+
+    def unit_inertia(self):
+        return np.full(3, 0.4 * float(self.radius) ** 2)
 
     # ----- facts for scenes, scenarios and the evaluation ---------------------------------
     removed_share: ClassVar[float] = 0.5
