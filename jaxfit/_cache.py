@@ -1,55 +1,57 @@
-"""JAX's persistent compilation cache, switched on for jaxfit when it is imported.
-
-Compiling one kernel takes ~0.6 s and a whole-process single fit is mostly compilation
-(PERF.md), so the compiled XLA executables are kept on disk and reused by later processes:
+"""JAX's persistent compilation cache, switched on for jaxfit when it is imported, plus
+jaxfit's own store of its kernels' traced programs (see docs/cache.md for the reasons,
+JAX's internals this relies on, and measurements).
 
 - where: ``$JAXFIT_CACHE_DIR`` if set, else ``<user cache>/jaxfit/jax-<jax version>`` with
   ``<user cache>`` = ``$XDG_CACHE_HOME`` or ``~/.cache`` (``~/Library/Caches`` on macOS,
-  ``%LOCALAPPDATA%`` on Windows). One folder per JAX version, so an upgrade starts clean
-  instead of piling stale entries into the folder in use.
+  ``%LOCALAPPDATA%`` on Windows). One folder per JAX version.
 - off: ``JAXFIT_CACHE=0`` (or ``false``, ``no``, ``off``) before importing jaxfit.
 - never overrides JAX: if a cache directory is already configured (``JAX_COMPILATION_CACHE_DIR``,
   ``jax.config.update("jax_compilation_cache_dir", ...)``) or JAX's cache is disabled
   (``JAX_ENABLE_COMPILATION_CACHE=false``), jaxfit changes nothing, thresholds included.
 - never fails an import: an unusable directory gives one ``RuntimeWarning`` and no cache.
+- process-wide: JAX's thresholds are lowered to store every executable (ours compile in
+  0.2-0.8 s, under JAX's 1 s default), so the user's own jitted functions are cached in the
+  same folder too.
 
-The thresholds are lowered because JAX by default only stores executables that took >= 1 s
-to compile, and ours take 0.2-0.8 s each. This is a process-wide JAX setting: while jaxfit's
-cache is on, the user's own jitted functions are cached in the same folder too.
+Stored programs: JAX looks an executable up by the lowered program, so every process would
+still trace and lower each kernel first. ``Stored`` kernels therefore also keep the program
+(a ``jax.export`` module) in ``exported/<source digest>/<sha256 of the key>.jaxexport``,
+keyed by everything it depends on (jaxfit's source, the JAX versions, the devices, JAX's
+numeric settings, ``XLA_FLAGS``, the call's static values and argument shapes). Files are
+written to a temporary name and renamed into place.
 
-Sharing the folder between processes (checked in jax 0.10.2, ``jax/_src/lru_cache.py`` and
-``compiler.py``): every executable is its own file named by a hash of the program, the
-compile options, the backend and the jax/jaxlib versions, so processes never write
-different contents under one name; ``put`` skips keys whose file exists, so an entry is
-written once and never rewritten while read. A reader that catches a file mid-write (or a
-file truncated by a crash) gets compressed data that fails zlib's length and checksum check,
-and JAX catches every cache read error (``jax_raise_persistent_cache_errors`` is False by
-default): it warns and compiles instead. There are no lock files to go stale, because the
-cache is unbounded (``jax_compilation_cache_max_size`` = -1; bounding it makes JAX lock
-with the optional ``filelock`` package). Delete the folder to clear it.
+Trust contract (jaxfit runs what it reads there):
 
-JAX's cache is keyed by the lowered program, so every process still traces and lowers each
-kernel before it can look the program up: 0.5-0.9 s per primitive, most of a warm
-whole-process fit. jaxfit's kernels (``Stored``) therefore also keep the lowered program
-itself, as a ``jax.export`` module (JAX's public, versioned serialization of StableHLO), in
-the ``exported`` sub-folder, keyed by what the program depends on (jaxfit's source, the JAX
-versions, the devices, JAX's numeric settings, ``XLA_FLAGS``, the call's static values and
-argument shapes). A later process reads it and skips tracing and lowering; the program is
-then compiled, or found in JAX's cache, as before. Each file is written to a temporary name
-and renamed into place, so a reader sees a whole file or none; a file that fails to load is
-exported again and replaced. (Serialized *executables* were tried first and dropped: on the
-CPU one that calls LAPACK crashed a fresh process, and one JAX had itself read from its
-cache was saved without its machine code.)
+- the folder must belong to the user and not be writable by group or others (POSIX), else
+  one warning and no cache at all;
+- a stored program is run only if its file belongs to the user, is not writable by others,
+  carries the HMAC-SHA256 tag of (its name, the program) under the folder's secret key
+  (``exported.key``: 32 random bytes, mode 0600, made once by the first process, remade
+  if it is not a user-only regular file of that length), and takes the call's arguments
+  (``_takes``). Anything else (planted, copied over another name or from another folder,
+  cut short) is exported again and the file replaced, never run;
+- an entry of JAX's own cache that JAX fails to read (cut short, corrupt) is deleted, so
+  JAX writes it again after compiling: one JAX warning, then none (``_guard_jax_entries``;
+  with another JAX whose private names differ, nothing is hooked).
+
+Not defended: anyone who can read the user's files (the key) or write as the user, and
+the executables in JAX's own entries, which JAX deserializes unsigned (the folder's
+ownership and mode are what protect those).
 """
 
 from __future__ import annotations
 
 import functools
 import hashlib
+import hmac
 import inspect
 import os
+import secrets
+import stat
 import sys
 import tempfile
+import time
 import warnings
 from pathlib import Path
 
@@ -139,6 +141,7 @@ def enable(environ=os.environ) -> str | None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
     _enabled_dir = str(path)
+    _guard_jax_entries()
     return _enabled_dir
 
 
@@ -219,8 +222,8 @@ def _static_value(value):
 class Stored:
     """A jitted function whose traced programs are kept in ``EXPORTED`` between processes
     (see the module docstring), called like the function itself. Without jaxfit's cache
-    folder, for arguments it cannot key, or if JAX cannot export the function, it calls
-    the jitted function.
+    folder or its key, for arguments it cannot key, or if JAX cannot export the function,
+    it calls the jitted function.
 
     ``jitted``: ``jax.jit`` of ``fn`` with ``static_argnames`` and the compiler
     ``options``, which the reloaded program is compiled with too.
@@ -259,30 +262,36 @@ class Stored:
 
     def _kernel(self, signature, args, kwargs, leaves, tree):
         """The jitted call of the exported program for one signature: read from the
-        folder (only a file of this user's that no one else can write, holding a program
-        of this call's arguments), or exported (traced and lowered) now and written there;
+        folder (only a file of this user's that no one else can write, signed with the
+        folder's key under this name, holding a program of this call's arguments), or
+        exported (traced and lowered) now and written there;
         ``self.jitted`` where JAX cannot export it. ``leaves`` and ``tree``: the call's
         dynamic arguments, flattened."""
         from jax import export
 
+        secret = _secret(_enabled_dir)
+        if secret is None:  # no key to sign with: nothing read, nothing written
+            return self.jitted
         key = repr((self.name, sorted(self.options.items()), _environment(), signature))
         # One sub-folder per jaxfit source: those of older versions can be deleted whole.
-        path = (Path(_enabled_dir) / EXPORTED / _source_digest()[:16]
-                / f"{hashlib.sha256(key.encode()).hexdigest()}.jaxexport")
+        name = f"{_source_digest()[:16]}/{hashlib.sha256(key.encode()).hexdigest()}"
+        path = Path(_enabled_dir) / EXPORTED / f"{name}.jaxexport"
         try:
             if (reason := unsafe(path)) is not None:
                 raise OSError(reason)
-            exported = export.deserialize(bytearray(path.read_bytes()))
+            blob = unseal(path.read_bytes(), name, secret)
+            exported = export.deserialize(bytearray(blob))
             if not _takes(exported, leaves, tree):
                 raise ValueError("a program of other arguments")
-        except Exception:  # missing, partial, unreadable, not ours or not this call's:
-            # export it (again) and replace the file
+        except Exception:  # missing, partial, unreadable, not ours, not signed by this
+            # folder's key for this name, or not this call's: export it (again) and
+            # replace the file
             try:
                 exported = export.export(self.jitted)(*args, **kwargs)
                 blob = exported.serialize()
             except Exception:  # (a real error in the call is raised by the jitted one)
                 return self.jitted
-            _write(path, blob)
+            _write(path, seal(blob, name, secret))
         options = {"compiler_options": self.options} if self.options else {}
         return jax.jit(exported.call, **options)
 
@@ -336,4 +345,166 @@ def _write(path: Path, blob) -> None:
         with replacing(path, private=True) as temporary:
             temporary.write_bytes(blob)
     except OSError:
+        pass
+
+
+# --- The key that signs the stored programs -------------------------------------------
+
+#: File in jaxfit's cache folder holding the secret key the stored programs are signed
+#: with: only the user can read it (mode 0600).
+KEY_FILE = "exported.key"
+KEY_BYTES = 32
+#: What a stored program's file starts with; then its HMAC-SHA256 tag, then the program.
+MAGIC = b"jaxfit exported program, HMAC-SHA256\n"
+_TAG_BYTES = hashlib.sha256().digest_size
+
+
+def seal(blob: bytes, name: str, secret: bytes) -> bytes:
+    """The file content for the program ``blob`` stored under ``name``: MAGIC, the
+    HMAC-SHA256 tag of (name, blob) under ``secret``, the blob."""
+    return MAGIC + _tag(blob, name, secret) + bytes(blob)
+
+
+def unseal(data: bytes, name: str, secret: bytes) -> bytes:
+    """The program of a file read from under ``name``; ValueError unless its tag is the one
+    ``seal`` gives with this secret for this name (planted, copied from another name or
+    folder, cut short, or of an older format)."""
+    head = len(MAGIC) + _TAG_BYTES
+    if len(data) < head or not data.startswith(MAGIC):
+        raise ValueError("not a sealed program")
+    blob = data[head:]
+    if not hmac.compare_digest(data[len(MAGIC):head], _tag(blob, name, secret)):
+        raise ValueError("its tag does not match: not written by this user's jaxfit "
+                         "under this name")
+    return blob
+
+
+def _tag(blob: bytes, name: str, secret: bytes) -> bytes:
+    # The name is length-prefixed, so no (name, blob) pair reads as another.
+    encoded = name.encode()
+    mac = hmac.new(secret, len(encoded).to_bytes(4, "big") + encoded, hashlib.sha256)
+    mac.update(blob)
+    return mac.digest()
+
+
+@functools.cache
+def _secret(folder: str) -> bytes | None:
+    """The key of the cache folder (read once per process), or None if it can be neither
+    read nor made (then no program is read or written)."""
+    return _load_secret(Path(folder) / KEY_FILE)
+
+
+def _load_secret(path: Path) -> bytes | None:
+    """Read the key file, or make it if missing; one that is not a user-only regular file
+    of KEY_BYTES bytes is deleted and made again. Concurrent processes agree: a new key is
+    written to a private temporary file and linked into place, which fails if another
+    process was first; the losers read the winner's key."""
+    for _ in range(4):
+        secret, bad = _read_secret(path)
+        if secret is not None:
+            return secret
+        try:
+            if bad:
+                path.unlink(missing_ok=True)
+            return _create_secret(path)
+        except FileExistsError:  # another process was first: read its key
+            continue
+        except OSError:
+            return None
+    return None
+
+
+def _read_secret(path: Path) -> tuple[bytes | None, bool]:
+    """(the key, False), or (None, whether a file is there that is not a good key)."""
+    for attempt in range(5):
+        try:
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0)
+                         | getattr(os, "O_BINARY", 0))
+        except FileNotFoundError:
+            return None, False
+        except OSError:  # a symbolic link (O_NOFOLLOW), unreadable, ...
+            return None, True
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode) or (hasattr(os, "getuid") and (
+                    st.st_uid != os.getuid() or st.st_mode & 0o077)):
+                return None, True  # not a file, or not the user's alone: others may know it
+            secret = os.read(fd, KEY_BYTES + 1)
+        except OSError:
+            return None, True
+        finally:
+            os.close(fd)
+        if len(secret) == KEY_BYTES:
+            return secret, False
+        # Short: maybe still being written (only where links are refused, see below).
+        time.sleep(0.01 * (attempt + 1))
+    return None, True
+
+
+def _create_secret(path: Path) -> bytes:
+    """Write a new key to ``path``; FileExistsError if there is a file already."""
+    secret = secrets.token_bytes(KEY_BYTES)
+    fd, temporary = tempfile.mkstemp(prefix=".key-", dir=path.parent)  # O_EXCL, mode 0600
+    try:
+        with os.fdopen(fd, "wb") as file:
+            file.write(secret)
+        try:
+            os.link(temporary, path)  # whole or not at all; fails if there is one
+        except FileExistsError:
+            raise
+        except OSError:  # a filesystem without hard links: create it in place
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL
+                         | getattr(os, "O_BINARY", 0), 0o600)
+            with os.fdopen(fd, "wb") as file:
+                file.write(secret)
+    finally:
+        os.unlink(temporary)
+    return secret
+
+
+# --- JAX's own entries ----------------------------------------------------------------
+
+def _guard_jax_entries() -> bool:
+    """Make JAX delete an entry of jaxfit's folder that it fails to read, so that it is
+    written again after compiling (JAX's ``put`` skips a key whose file exists: a cut or
+    corrupt entry would otherwise warn and recompile in every process, for ever).
+
+    Wraps ``jax._src.compilation_cache.get_executable_and_time``, which reads, decompresses
+    and deserializes an entry (jax 0.10.2). Where JAX's private names differ it does
+    nothing and returns False; it never raises."""
+    try:
+        from jax._src import compilation_cache, lru_cache
+
+        read = compilation_cache.get_executable_and_time
+        suffix = lru_cache._CACHE_SUFFIX
+        inspect.signature(read).bind("key", None, None, None)
+    except Exception:  # another JAX: leave it alone
+        return False
+    if getattr(read, "_jaxfit_guard", False):
+        return True
+
+    @functools.wraps(read)
+    def get_executable_and_time(cache_key, *args, **kwargs):
+        try:
+            return read(cache_key, *args, **kwargs)
+        except Exception:
+            _drop_entry(getattr(compilation_cache, "_cache", None), cache_key, suffix)
+            raise  # JAX warns (once) and compiles, then writes the entry again
+
+    get_executable_and_time._jaxfit_guard = True
+    compilation_cache.get_executable_and_time = get_executable_and_time
+    return True
+
+
+def _drop_entry(cache, cache_key, suffix) -> None:
+    """Delete the entry file of ``cache_key`` if the cache in use is jaxfit's folder."""
+    try:
+        folder = getattr(cache, "_path", None)
+        name = f"{cache_key}{suffix}"
+        if (_enabled_dir is None or folder is None or not isinstance(cache_key, str)
+                or os.sep in name or "/" in name or name.startswith(".")
+                or os.path.realpath(str(folder)) != os.path.realpath(_enabled_dir)):
+            return
+        os.unlink(os.path.join(_enabled_dir, name))
+    except Exception:  # gone already, or not ours to judge
         pass

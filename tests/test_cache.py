@@ -3,10 +3,14 @@ because the cache is configured once, on import, for the whole process."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import json
 import os
+import shutil
+import stat
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -124,6 +128,7 @@ def _stored_square(tmp_path, monkeypatch, traced):
     """A fresh ``Stored`` kernel (as a new process would make) writing to tmp_path."""
     import jax
 
+    tmp_path.mkdir(exist_ok=True)
     monkeypatch.setattr(_cache, "_enabled_dir", str(tmp_path))
 
     def scaled_square(x, factor):
@@ -245,3 +250,295 @@ def test_no_home_folder_leaves_jaxfit_importable(tmp_path):
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "None" and out.stderr.count("no user cache folder") == 1
 
+
+
+# --- Trust (issue 14, Security): signed programs, JAX's entries, shared folders ---------
+
+# A tiny whole-process fit (~1 s with warm caches); prints its results.
+FIT = r"""
+import json, warnings
+warnings.simplefilter("always")
+import jax, numpy as np
+import jaxfit
+from jaxfit.evaluation.synthetic import demo_cloud
+points, _, _ = demo_cloud("sphere", count=200, outlier_ratio=0.2, seed=0)
+result = jaxfit.fit(points, "sphere", batch_size=64, max_hypotheses=64, refine=False, key=0)
+print(json.dumps({"dir": jaxfit.compilation_cache_dir(), "cost": float(result.cost),
+                  "inliers": np.flatnonzero(result.inliers).tolist(),
+                  "model": [np.asarray(leaf).tolist() for leaf in jax.tree.leaves(result.model)]}))
+"""
+
+
+def fit_with_cache(folder: Path) -> tuple[dict, str | None, str]:
+    """FIT in a fresh interpreter caching in folder: (its results, the cache folder it
+    used, its stderr)."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("JAXFIT_CACHE", "JAX_COMPILATION_CACHE", "JAX_ENABLE_COMP"))}
+    env[_cache.ENV_DIR] = str(folder)
+    proc = subprocess.run([sys.executable, "-c", FIT], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    return out, out.pop("dir"), proc.stderr
+
+
+def warning_count(stderr: str) -> int:
+    return stderr.count("Warning: ")
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    """One clean run's results, and a copy of the folder it left for ``warm_copy``."""
+    base = tmp_path_factory.mktemp("trust")
+    results, used, err = fit_with_cache(base / "cache")
+    assert used == str(base / "cache") and warning_count(err) == 0, err
+    shutil.copytree(base / "cache", base / "pristine")
+    return results, base
+
+
+def sources(folder: Path) -> set[str]:
+    """The jaxfit sources (digests) the folder holds programs of."""
+    return {p.name for p in (folder / _cache.EXPORTED).iterdir()}
+
+
+def warm_copy(clean) -> Path:
+    """The clean run's folder as it left it, at the path it ran in (JAX's keys depend on
+    the cache folder's path: it passes XLA a cache path inside it), with the programs of
+    jaxfit's source as it is now (made again if the source was edited since)."""
+    results, base = clean
+    folder = base / "cache"
+    shutil.rmtree(folder, ignore_errors=True)
+    shutil.copytree(base / "pristine", folder)
+    if sources(folder) != {_cache._source_digest.__wrapped__()[:16]}:
+        shutil.rmtree(folder)
+        assert fit_with_cache(folder)[0] == results
+    return folder
+
+
+def read_the_copy(folder: Path) -> None:
+    """Skip unless the last run read the programs of the copy (not those of a source
+    edited meanwhile, which would make the test pass without reading them)."""
+    if len(sources(folder)) != 1:
+        pytest.skip("jaxfit's source changed while the test ran; rerun it")
+
+
+def programs(folder: Path) -> dict[str, Path]:
+    """The stored programs of a folder by the name their tag is keyed on."""
+    root = folder / _cache.EXPORTED
+    return {p.relative_to(root).with_suffix("").as_posix(): p for p in exported(folder)}
+
+
+def plus_three_tenths(blob: bytes) -> bytes:
+    """A valid program of the same arguments as ``blob``'s that adds 0.3 to its
+    floating-point results (what someone could plant to falsify fits)."""
+    import jax
+    import jax.numpy as jnp
+    from jax import export
+
+    genuine = export.deserialize(bytearray(blob))
+    args, kwargs = jax.tree_util.tree_unflatten(
+        genuine.in_tree, [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+                          for a in genuine.in_avals])
+
+    def planted(*args, **kwargs):
+        return jax.tree_util.tree_map(
+            lambda r: r + 0.3 if jnp.issubdtype(r.dtype, jnp.floating) else r,
+            genuine.call(*args, **kwargs))
+
+    return export.export(jax.jit(planted))(*args, **kwargs).serialize()
+
+
+@pytest.mark.parametrize("forgery", ["raw program", "tag of another key"])
+def test_a_planted_program_is_not_run(clean, tmp_path, forgery):
+    """Someone who can write into the folder but not read the user's key replaces every
+    stored program with one of the same arguments that shifts the results: none is run,
+    the fit equals the clean one and the files are replaced by genuine ones."""
+    folder = warm_copy(clean)
+    secret = (folder / _cache.KEY_FILE).read_bytes()
+    planted = {}
+    for name, path in programs(folder).items():
+        evil = plus_three_tenths(_cache.unseal(path.read_bytes(), name, secret))
+        if forgery == "tag of another key":
+            evil = _cache.seal(evil, name, os.urandom(_cache.KEY_BYTES))
+        path.write_bytes(evil)
+        planted[name] = evil
+    results, used, err = fit_with_cache(folder)
+    read_the_copy(folder)
+    assert used == str(folder) and results == clean[0]
+    assert warning_count(err) == 0, err
+    for name, path in programs(folder).items():
+        assert path.read_bytes() != planted[name]
+        _cache.unseal(path.read_bytes(), name, secret)  # signed again with the key
+
+
+def test_a_program_copied_over_another_name_is_replaced(clean, tmp_path):
+    folder = warm_copy(clean)
+    (first, source), (second, target) = sorted(programs(folder).items())
+    target.write_bytes(source.read_bytes())
+    results, used, err = fit_with_cache(folder)
+    read_the_copy(folder)
+    assert used == str(folder) and results == clean[0]
+    assert warning_count(err) == 0 and "tree" not in err.lower(), err
+    secret = (folder / _cache.KEY_FILE).read_bytes()
+    assert target.read_bytes() != source.read_bytes()
+    _cache.unseal(target.read_bytes(), second, secret)
+
+
+def test_a_program_copied_over_one_of_the_same_arguments_is_not_run(tmp_path, monkeypatch):
+    """The factor-2 program under the factor-3 one's name takes the same arguments (it
+    passes ``_takes``), so only its tag, keyed on the name, tells it apart."""
+    import numpy as np
+
+    traced = []
+    x = np.arange(4, dtype=np.float32)
+    _stored_square(tmp_path, monkeypatch, traced)(x, factor=3)
+    (three,) = exported(tmp_path)
+    _stored_square(tmp_path, monkeypatch, traced)(x, factor=2)
+    (two,) = set(exported(tmp_path)) - {three}
+    three.write_bytes(two.read_bytes())
+    again = _stored_square(tmp_path, monkeypatch, traced)
+    np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
+    assert len(traced) == 3 and three.read_bytes() != two.read_bytes()
+
+
+def test_a_program_from_another_cache_folder_is_not_run(tmp_path, monkeypatch):
+    import numpy as np
+
+    traced = []
+    x = np.arange(4, dtype=np.float32)
+    _stored_square(tmp_path / "a", monkeypatch, traced)(x, factor=3)
+    _stored_square(tmp_path / "b", monkeypatch, traced)(x, factor=3)
+    (a,), (b,) = exported(tmp_path / "a"), exported(tmp_path / "b")
+    assert a.relative_to(tmp_path / "a") == b.relative_to(tmp_path / "b")  # one name
+    b.write_bytes(a.read_bytes())  # valid, same name, but signed with a's key
+    again = _stored_square(tmp_path / "b", monkeypatch, traced)
+    np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
+    assert len(traced) == 3 and b.read_bytes() != a.read_bytes()
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid"), reason="POSIX ownership and modes")
+@pytest.mark.parametrize("owner", ["this user", "another user"])
+def test_a_world_writable_folder_is_not_used(clean, tmp_path, owner):
+    folder = warm_copy(clean)
+    if owner == "another user":
+        if os.geteuid() != 0:
+            pytest.skip("giving the folder to another user (uid 65534) needs root")
+        for path in [folder, *folder.rglob("*")]:
+            os.chown(path, 65534, 65534)
+    folder.chmod(0o777)
+    results, used, err = fit_with_cache(folder)
+    assert used is None and results == clean[0]
+    assert warning_count(err) == 1 and err.count("compilation cache disabled") == 1, err
+
+
+def test_a_truncated_jax_entry_is_written_again(clean, tmp_path):
+    """JAX never rewrites an entry whose file exists: jaxfit deletes one that fails to
+    load, so it warns once (JAX's warning) and the next process reads it silently."""
+    folder = warm_copy(clean)
+    entry = max(entries(folder), key=lambda p: p.stat().st_size)
+    cut = entry.read_bytes()[: entry.stat().st_size // 2]
+    entry.write_bytes(cut)
+    results, used, err = fit_with_cache(folder)
+    read_the_copy(folder)
+    assert used == str(folder) and results == clean[0]
+    assert warning_count(err) <= 1, err
+    assert entry.exists() and entry.read_bytes() != cut
+    results, _, err = fit_with_cache(folder)
+    assert results == clean[0] and warning_count(err) == 0, err
+
+
+def test_seal_binds_the_name_and_the_key():
+    secret, other = os.urandom(32), os.urandom(32)
+    sealed = _cache.seal(b"program", "abc/def", secret)
+    assert _cache.unseal(sealed, "abc/def", secret) == b"program"
+    flipped = bytearray(sealed)
+    flipped[-1] ^= 1
+    for data, name, key in [(sealed, "abc/deg", secret), (sealed, "abc/def", other),
+                            (sealed[:-1], "abc/def", secret), (bytes(flipped), "abc/def", secret),
+                            (b"program", "abc/def", secret), (b"", "abc/def", secret)]:
+        with pytest.raises(ValueError):
+            _cache.unseal(data, name, key)
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid"), reason="POSIX ownership and modes")
+def test_the_key_file_is_private_and_kept(tmp_path):
+    path = tmp_path / _cache.KEY_FILE
+    secret = _cache._load_secret(path)
+    assert len(secret) == _cache.KEY_BYTES and path.read_bytes() == secret
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert _cache._load_secret(path) == secret
+    assert [p.name for p in tmp_path.iterdir()] == [_cache.KEY_FILE]  # no temporary left
+
+
+@pytest.mark.skipif(not hasattr(os, "getuid"), reason="POSIX ownership and modes")
+@pytest.mark.parametrize("flaw", ["group-readable", "short", "long", "a link", "a folder",
+                                  "another user's"])
+def test_a_key_file_that_cannot_be_trusted_is_made_again(tmp_path, flaw):
+    path = tmp_path / _cache.KEY_FILE
+    secret = _cache._load_secret(path)
+    if flaw == "group-readable":
+        path.chmod(0o640)
+    elif flaw in ("short", "long"):
+        path.write_bytes(secret[:-1] if flaw == "short" else secret + b"x")
+    elif flaw == "a link":
+        path.unlink()
+        (tmp_path / "elsewhere").write_bytes(secret)
+        (tmp_path / "elsewhere").chmod(0o600)
+        path.symlink_to(tmp_path / "elsewhere")
+    elif flaw == "a folder":
+        path.unlink()
+        path.mkdir()
+    else:
+        if os.geteuid() != 0:
+            pytest.skip("giving the key file to another user (uid 65534) needs root")
+        os.chown(path, 65534, 65534)
+    if path.is_dir():
+        assert _cache._load_secret(path) is None  # cannot replace a folder: no programs
+        return
+    fresh = _cache._load_secret(path)
+    assert fresh is not None and fresh != secret and path.read_bytes() == fresh
+    st = path.lstat()
+    assert stat.S_ISREG(st.st_mode) and st.st_mode & 0o777 == 0o600
+    assert st.st_uid == os.getuid()
+
+
+def test_processes_making_the_key_at_once_agree(tmp_path):
+    """First writer wins: every concurrent maker returns the key that ends up on disk."""
+    path = tmp_path / _cache.KEY_FILE
+    barrier = threading.Barrier(8)
+
+    def make(_):
+        barrier.wait()
+        return _cache._load_secret(path)
+
+    with concurrent.futures.ThreadPoolExecutor(8) as pool:
+        keys = set(pool.map(make, range(8)))
+    assert keys == {path.read_bytes()}
+
+
+def test_the_jax_entry_guard_leaves_another_jax_alone(monkeypatch):
+    from jax._src import compilation_cache
+
+    assert _cache._guard_jax_entries()  # installed (once) on import, idempotent
+    guarded = compilation_cache.get_executable_and_time
+    assert _cache._guard_jax_entries() and compilation_cache.get_executable_and_time is guarded
+    monkeypatch.delattr(compilation_cache, "get_executable_and_time")
+    assert _cache._guard_jax_entries() is False
+
+
+def test_an_entry_outside_jaxfit_folder_is_never_deleted(tmp_path, monkeypatch):
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "k-cache").write_bytes(b"broken")
+    monkeypatch.setattr(_cache, "_enabled_dir", str(tmp_path / "ours"))
+
+    class Cache:
+        _path = theirs
+
+    _cache._drop_entry(Cache(), "k", "-cache")
+    assert (theirs / "k-cache").exists()
+    monkeypatch.setattr(_cache, "_enabled_dir", str(theirs))
+    _cache._drop_entry(Cache(), "../k", "-cache")  # not a plain name
+    assert (theirs / "k-cache").exists()
+    _cache._drop_entry(Cache(), "k", "-cache")
+    assert not (theirs / "k-cache").exists()
