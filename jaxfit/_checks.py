@@ -4,6 +4,7 @@ gets a ValueError naming it instead of a failure deep inside a traced function."
 from __future__ import annotations
 
 import functools
+import math
 import numbers
 
 import jax
@@ -27,13 +28,23 @@ def model_class(shape) -> type[Model]:
     raise ValueError(f"unknown shape {shape!r}; expected one of {sorted(REGISTRY)} or its class")
 
 
-def cloud(points, name: str = "points") -> np.ndarray:
-    """An (N, 3) float64 copy of ``points``; raises on wrong shape or non-finite values."""
+#: Largest coordinate magnitude accepted in a cloud: distances are squared in float64
+#: (the largest float is ~1.8e308), so beyond ~1e154 they overflow; 1e150 leaves room for
+#: sums of squares.
+MAX_COORDINATE = 1e150
+
+
+def cloud(points, name: str = "points", limit: float | None = MAX_COORDINATE) -> np.ndarray:
+    """An (N, 3) float64 copy of ``points``; raises on wrong shape, non-numeric or
+    non-finite values, or (unless ``limit`` is None) coordinates beyond ``limit``."""
+    kind = getattr(getattr(points, "dtype", None), "kind", None)
+    if kind in ("M", "m", "V"):  # (NumPy casts datetimes and one-field records to float)
+        raise ValueError(f"{name} must be numeric, of shape (N, 3): got dtype {points.dtype}")
     try:
         if np.iscomplexobj(points):  # (float64 would drop the imaginary part, with a warning)
             raise TypeError(f"complex values ({np.asarray(points).dtype})")
         arr = np.array(points, dtype=np.float64)
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise ValueError(f"{name} must be numeric, of shape (N, 3): {err}") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
@@ -42,6 +53,12 @@ def cloud(points, name: str = "points") -> np.ndarray:
         raise ValueError(
             f"{name} contain {rows.size} row(s) with NaN or inf values, e.g. row {rows[0]}"
         )
+    if limit is not None and arr.size and not -limit <= arr.min() <= arr.max() <= limit:
+        row = int(np.argmax(np.abs(arr).max(axis=1)))
+        raise ValueError(
+            f"{name} have coordinates up to {np.abs(arr[row]).max():.3g} in magnitude (row "
+            f"{row}); at most {limit:.0e} are accepted, since squared distances overflow "
+            "float64 beyond ~1e154: rescale the cloud")
     return arr
 
 
@@ -57,23 +74,54 @@ def points_for(points, cls: type[Model]) -> np.ndarray:
 def normals_for(normals, points: np.ndarray):
     if normals is None:
         return None
-    arr = cloud(normals, "normals")
+    arr = cloud(normals, "normals", limit=None)
     if arr.shape != points.shape:
         raise ValueError(f"normals must match points' shape {points.shape}, got {arr.shape}")
-    if np.any(np.linalg.norm(arr, axis=1) == 0):
+    # Each row divided by its largest entry first: the norm of (1e200, 0, 0) overflowed
+    # (giving a zero normal) and that of (1e-200, 0, 0) underflowed (rejected as zero).
+    largest = np.abs(arr).max(axis=1, keepdims=True)
+    if np.any(largest == 0):
         raise ValueError("normals contain zero vectors")
+    arr = arr / largest
     return arr / np.linalg.norm(arr, axis=1, keepdims=True)
 
 
 def positive(value, name: str, *, integer: bool = False):
-    if isinstance(value, np.ndarray) and value.ndim == 0:  # np.array(0.01) is a number
-        value = value.item()
+    """``value`` as a positive int (``integer``) or a positive finite float of at most
+    ``MAX_COORDINATE`` (a distance beyond it overflows when squared: a threshold of 1e300
+    made a fit raise OverflowError); raises a ValueError naming ``name`` for anything
+    else (bools, strings, NaN, 0, ...)."""
+    if isinstance(value, np.ndarray | jax.Array) and value.ndim == 0:
+        value = value.item()  # np.array(0.01) is a number
     kind = numbers.Integral if integer else numbers.Real
-    wrong_type = isinstance(value, bool) or not isinstance(value, kind)
-    if wrong_type or not np.isfinite(value) or value <= 0:
+    valid = not isinstance(value, bool) and isinstance(value, kind)
+    if valid and not integer:
+        try:
+            value = float(value)  # (Fractions and NumPy floats too; 10**400 overflows)
+        except (OverflowError, TypeError, ValueError):
+            valid = False
+        valid = valid and math.isfinite(value)
+    if not valid or value <= 0:
         what = "a positive integer" if integer else "a positive finite number"
         raise ValueError(f"{name} must be {what}, got {value!r}")
-    return int(value) if integer else float(value)
+    if not integer and value > MAX_COORDINATE:
+        raise ValueError(f"{name} must be at most {MAX_COORDINATE:.0e} (squared, larger "
+                         f"values overflow float64), got {value!r}")
+    return int(value) if integer else value
+
+
+def non_negative(value, name: str) -> float:
+    """``value`` as a float >= 0 (inf allowed); raises a ValueError naming ``name`` for
+    NaN, negatives, bools and non-numbers."""
+    if isinstance(value, np.ndarray | jax.Array) and value.ndim == 0:
+        value = value.item()
+    try:
+        number = float(value) if isinstance(value, numbers.Real) else math.nan
+    except OverflowError:
+        number = math.inf if value > 0 else -math.inf
+    if isinstance(value, bool) or not number >= 0:
+        raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+    return number
 
 
 def probability(value, name: str) -> float:

@@ -42,7 +42,7 @@ import jax
 import numpy as np
 
 from . import _checks
-from .engine import DEFAULT_THRESHOLD_FRACTION, fit
+from .engine import DEFAULT_THRESHOLD_FRACTION, FitOptions, fit
 from .normals import estimate_normals
 from .shapes import Model
 
@@ -189,8 +189,15 @@ def choose(sizes: np.ndarray, costs: np.ndarray, tolerance: float) -> int:
 
 
 def _check_options(points, shapes, min_inliers, threshold, normals, max_angle, connect,
-                   tolerance):
+                   tolerance, fit_options):
     cloud = _checks.cloud(points)
+    if isinstance(shapes, str | type):
+        shapes = (shapes,)  # one shape
+    try:
+        shapes = tuple(shapes)
+    except TypeError:
+        raise TypeError(f"shapes must be a sequence of shape names or classes, got "
+                        f"{shapes!r}") from None
     classes = [_checks.model_class(s) for s in shapes]
     if not classes:
         raise ValueError("shapes is empty: give at least one shape to detect")
@@ -206,16 +213,28 @@ def _check_options(points, shapes, min_inliers, threshold, normals, max_angle, c
     if len(cloud) < min_inliers:
         raise ValueError(f"too few points: {len(cloud)} < min_inliers = {min_inliers}")
     if threshold is None:
-        threshold = DEFAULT_THRESHOLD_FRACTION * np.linalg.norm(np.ptp(cloud, axis=0))
+        sides = np.ptp(cloud, axis=0)
+        if not sides.max() > 0:
+            raise _checks.FitError("all points coincide: there is no shape to detect")
+        diagonal = np.linalg.norm(sides)
+        if not diagonal > 0:  # squaring sides of 1e-200 gave 0: scaled by the longest
+            diagonal = sides.max() * np.linalg.norm(sides / sides.max())
+        threshold = DEFAULT_THRESHOLD_FRACTION * diagonal
     threshold = _checks.positive(threshold, "threshold")
     max_angle = _checks.positive(max_angle, "max_angle")
     if max_angle > 90:
         raise ValueError(f"max_angle is in degrees and must be in (0, 90], got {max_angle}")
     connect = _checks.positive(connect, "connect")
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or tolerance < 0:
-        raise ValueError(f"tolerance must be a non-negative number, got {tolerance!r}")
+    tolerance = _checks.non_negative(tolerance, "tolerance")  # (NaN: no shape could win)
     normals = _checks.normals_for(normals, cloud)
-    return cloud, classes, min_inliers, threshold, normals, max_angle, connect
+    # The fits' options, checked now rather than at the first fit (after the normals),
+    # and only FitOptions' own: detect's fits get their normals, threshold and key from
+    # detect, and fit_batch's skip_failures would have made a failed fit None.
+    settings = dict(fit_options)
+    options = FitOptions.build(settings.pop("options", None), **settings)
+    for cls in classes:
+        options.check(cls)
+    return cloud, classes, min_inliers, threshold, normals, max_angle, connect, tolerance
 
 
 def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
@@ -228,7 +247,7 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
     ----------
     points : (N, 3) array-like of finite coordinates.
     shapes : candidate shapes, simplest first (the order breaks near-ties, see the
-        module docstring): names or model classes.
+        module docstring): names or model classes (or one name or class).
     min_inliers : smallest support worth reporting; the loop stops when no candidate
         reaches it. Default 1 % of the points (at least the largest minimal sample).
     threshold : inlier distance. Default: 0.5 % of the whole cloud's bounding-box
@@ -246,16 +265,18 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
     key : int seed or JAX key; round r, group g, shape s of S fits with
         ``fold_in(fold_in(fold_in(key, r), g), s)`` and refits with ``... , S + s)``.
     progress : print one line per detected primitive.
-    **fit_options : passed to every ``jaxfit.fit`` call (e.g. ``batch_size``,
-        ``min_hypotheses``, ``estimator``; not ``normals``, ``threshold`` or ``key``,
-        which detect sets).
+    **fit_options : passed to every ``jaxfit.fit`` call: ``FitOptions`` fields (e.g.
+        ``batch_size``, ``min_hypotheses``, ``estimator``) or ``options``, checked for
+        every shape before any work; not ``normals``, ``threshold`` or ``key``, which
+        detect sets.
 
     Returns
     -------
     Scene, with ``.shapes`` (list of Detection) and ``.unassigned`` (indices).
     """
-    cloud, classes, min_inliers, threshold, normals, max_angle, connect = _check_options(
-        points, shapes, min_inliers, threshold, normals, max_angle, connect, tolerance)
+    cloud, classes, min_inliers, threshold, normals, max_angle, connect, tolerance = \
+        _check_options(points, shapes, min_inliers, threshold, normals, max_angle, connect,
+                       tolerance, fit_options)
     fit_points = _checks.positive(fit_points, "fit_points", integer=True)
     if normals is None:
         normals = estimate_normals(cloud, orient=None)

@@ -6,6 +6,7 @@ Free of jax, and trimesh (slow to import) is imported only when a mesh is read.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from pathlib import Path
@@ -17,6 +18,8 @@ __all__ = ["LoadError", "SUPPORTED_EXTENSIONS", "load_points"]
 MESH_EXTENSIONS = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf", ".iv")
 TEXT_EXTENSIONS = (".xyz", ".txt", ".csv", ".crd", ".pts")
 SUPPORTED_EXTENSIONS = MESH_EXTENSIONS + TEXT_EXTENSIONS + (".npy",)
+#: Longest .npy header read (NumPy's own limit for files it has not written itself).
+NPY_MAX_HEADER = 10_000
 
 
 class LoadError(ValueError):
@@ -60,7 +63,11 @@ def load_points(path, *, num_points: int = 20000, seed: int = 0) -> np.ndarray:
     LoadError
         (a ``ValueError``) if the file is missing, has an unsupported extension, holds no
         points, has fewer than 3 columns or non-numeric values, contains NaN/inf
-        coordinates, or if ``num_points`` < 1.
+        coordinates, is malformed (for a mesh: anything its reader rejects, faces that
+        index missing vertices, PLY/OFF counts or GLB chunk lengths promising more data
+        than the file holds; a ``.npy`` whose header promises more), or if
+        ``num_points`` < 1. A header's counts are checked against the file's size
+        before anything that size is allocated.
     """
     path = Path(os.fspath(path))
     if isinstance(num_points, bool) or not isinstance(num_points, (int, np.integer)):
@@ -105,9 +112,17 @@ def _load_mesh(path: Path, ext: str, num_points: int, seed: int) -> np.ndarray:
     import trimesh  # deferred: trimesh is slow to import and only meshes need it
 
     if ext == ".iv":
-        from .iv import load_iv
+        from .iv import IVError, load_iv
 
-        return sample_surface(load_iv(path), num_points, seed, path)
+        try:
+            mesh = load_iv(path)
+        except IVError as err:  # (it names the file and line already)
+            raise LoadError(str(err)) from err
+        return sample_surface(mesh, num_points, seed, path)
+    if ext == ".glb":
+        _check_glb_chunks(path)
+    elif ext in (".ply", ".off"):
+        _check_counts(path, ext)
     try:
         # process=False keeps vertices exactly as stored (no merging or reordering).
         geom = trimesh.load(path, file_type=ext[1:], process=False)
@@ -131,9 +146,63 @@ def _load_mesh(path: Path, ext: str, num_points: int, seed: int) -> np.ndarray:
     return sample_surface(geom, num_points, seed, path)
 
 
+def _check_counts(path: Path, ext: str) -> None:
+    """Raise LoadError if the element counts of a text PLY header (or an OFF file's
+    vertex and face counts) are negative or promise more rows than the file holds:
+    trimesh then reads the rows that are there as the wrong elements (face rows as
+    vertices) or drops the missing faces without a word. (Binary PLY is checked by
+    trimesh against the file's length.)"""
+    data = path.read_bytes()
+    if ext == ".ply":
+        head, found, body = data.partition(b"end_header")
+        lines = head.decode("latin-1").splitlines()
+        if not found or not any(line.split()[:2] == ["format", "ascii"] for line in lines):
+            return  # (no header, or binary: trimesh's own errors)
+        counts = [line.split()[2] for line in lines
+                  if line.split()[:1] == ["element"] and len(line.split()) > 2]
+        rows = len(body.splitlines()) - 1  # (the first is the rest of "end_header")
+        what = "PLY header"
+    else:
+        parts = re.split(rb"(?:C?OFF)", data, maxsplit=1)
+        if len(parts) < 2:
+            return
+        lines = [line.split(b"#")[0].strip() for line in parts[1].splitlines()]
+        lines = [line.decode("latin-1") for line in lines if line]
+        counts = lines[0].split()[:2] if lines else []
+        rows = len(lines) - 1
+        what = "OFF counts line"
+    if not all(re.fullmatch(r"[-+]?\d+", c) for c in counts):
+        return  # (trimesh says what is wrong with them)
+    counts = [int(c) for c in counts]
+    if any(c < 0 for c in counts) or sum(counts) > rows:
+        raise LoadError(f"could not read mesh {path}: its {what} promises {counts} "
+                        f"elements ({sum(counts)} rows), the file has {rows} rows of data")
+
+
+def _check_glb_chunks(path: Path) -> None:
+    """Raise LoadError if a chunk of a binary glTF claims more bytes than follow it:
+    trimesh reads each chunk with one ``read(length)``, which allocates the claimed
+    length (up to 4 GB from a 32-bit field) before finding the file short."""
+    size = path.stat().st_size
+    with open(path, "rb") as file:
+        at = 12  # after the magic, the version and the total length
+        while at + 8 <= size:
+            file.seek(at)
+            length = int.from_bytes(file.read(4), "little")
+            if length > size - at - 8:
+                raise LoadError(f"could not read mesh {path}: its GLB chunk at byte {at} "
+                                f"claims {length} bytes, only {size - at - 8} follow")
+            at += 8 + length
+
+
 def sample_surface(geom, num_points: int, seed: int = 0, path="mesh") -> np.ndarray:
     """(num_points, 3) points uniform over the area of a trimesh mesh, or the vertices
-    (N, 3) as they are when it has no faces; ``path`` only names it in errors."""
+    (N, 3) as they are when it has no faces; ``path`` only names it in errors.
+
+    Raises LoadError for non-finite vertices, faces that are not triangles of indices
+    into the vertices (meshes are loaded unprocessed, so nothing else checks them), and
+    a mesh without surface area.
+    """
     import trimesh
 
     vertices = np.asarray(getattr(geom, "vertices", np.empty((0, 3))), dtype=np.float64)
@@ -143,24 +212,89 @@ def sample_surface(geom, num_points: int, seed: int = 0, path="mesh") -> np.ndar
     _check_points(vertices, path, "vertices")
     if faces is None or len(faces) == 0:
         return vertices
-    if not geom.area > 0:
-        raise LoadError(f"mesh in {path} has zero surface area; cannot sample points")
-    samples, _ = trimesh.sample.sample_surface(geom, int(num_points), seed=seed)
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise LoadError(f"expected triangles (F, 3) of vertex indices in {path}, got an "
+                        f"array of shape {faces.shape} and dtype {faces.dtype}")
+    outside = np.flatnonzero(((faces < 0) | (faces >= len(vertices))).any(axis=1))
+    if outside.size:
+        raise LoadError(
+            f"{outside.size} of {len(faces)} faces in {path} index vertices outside 0..."
+            f"{len(vertices) - 1} (first: face {outside[0]}, {faces[outside[0]].tolist()})")
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        area = geom.area
+        if np.isfinite(area) and area > 0:
+            samples, _ = trimesh.sample.sample_surface(geom, int(num_points), seed=seed)
+        else:
+            # trimesh's areas (square roots of sums of squares) overflow for coordinates
+            # near 1e300 and underflow to 0 for a mesh near 1e-160 in size: such a mesh
+            # is sampled in a frame where its coordinates are at most 1, by areas
+            # computed without squaring, and scaled back.
+            samples = _sample_scaled(vertices, faces, int(num_points), seed, path)
+    if not np.isfinite(samples).all():
+        raise LoadError(f"mesh in {path} has coordinates too large to sample (points on "
+                        "its surface overflow float64)")
     return samples
 
 
+def _sample_scaled(vertices, faces, num_points: int, seed, path) -> np.ndarray:
+    """sample_surface for a mesh whose areas over- or underflow (see there)."""
+    import trimesh
+
+    scale = float(np.abs(vertices).max())
+    unit = vertices / scale if scale > 0 else vertices
+    corners = unit[faces]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    largest = np.abs(cross).max(axis=1)
+    ratio = cross / np.where(largest > 0, largest, 1.0)[:, None]
+    weight = largest * np.sqrt((ratio**2).sum(axis=1))  # twice the area, in the unit frame
+    if not weight.sum() > 0:
+        raise LoadError(f"mesh in {path} has zero surface area; cannot sample points")
+    mesh = trimesh.Trimesh(unit, faces, process=False)
+    samples, _ = trimesh.sample.sample_surface(mesh, num_points, face_weight=weight,
+                                               seed=seed)
+    return samples * scale
+
+
 def _load_npy(path: Path) -> np.ndarray:
+    fmt = np.lib.format
+    try:
+        # The header first: its shape is believed only if the file holds that much data
+        # (np.load allocates the whole array before reading, 9.6 GB for a 200-byte file
+        # whose header claims 4e8 x 3 doubles).
+        # NumPy reads as many header bytes as the header's length field says before it
+        # checks them (a 4-byte field: up to 4 GB), so that length is checked first too.
+        with open(path, "rb") as file:
+            version = fmt.read_magic(file)
+            if version not in ((1, 0), (2, 0), (3, 0)):
+                raise ValueError(f"unsupported .npy format version {version}")
+            length_bytes = 2 if version == (1, 0) else 4
+            length = int.from_bytes(file.read(length_bytes), "little")
+            if length > min(NPY_MAX_HEADER, path.stat().st_size - file.tell()):
+                raise ValueError(f"header length {length} is past the end of the file or "
+                                 f"over {NPY_MAX_HEADER} bytes")
+            file.seek(-length_bytes, os.SEEK_CUR)
+            read_header = fmt.read_array_header_1_0 if version == (1, 0) else \
+                fmt.read_array_header_2_0  # (3.0 differs only in its text encoding)
+            shape, _, dtype = read_header(file)
+            data_bytes = path.stat().st_size - file.tell()
+    except Exception as e:
+        raise LoadError(f"could not read .npy file {path}: {e}") from e
+    if dtype.kind not in "iuf":
+        raise LoadError(f"non-numeric array dtype {dtype} in {path}; expected float/int")
+    if len(shape) != 2:
+        raise LoadError(f"expected an (N, 3) array in {path}, got shape {shape}")
+    if shape[1] < 3:
+        raise LoadError(f"expected at least 3 columns (x, y, z) in {path}, got {shape[1]}")
+    if math.prod(shape) * dtype.itemsize > data_bytes:
+        raise LoadError(f"truncated .npy file {path}: its header promises shape {shape} of "
+                        f"{dtype} ({math.prod(shape) * dtype.itemsize} bytes), the file holds "
+                        f"{data_bytes} bytes of data")
     try:
         # allow_pickle=False: loading object arrays could execute arbitrary code.
         arr = np.load(path, allow_pickle=False)
     except Exception as e:
         raise LoadError(f"could not read .npy file {path}: {e}") from e
-    if arr.dtype.kind not in "iuf":
-        raise LoadError(f"non-numeric array dtype {arr.dtype} in {path}; expected float/int")
-    if arr.ndim != 2:
-        raise LoadError(f"expected an (N, 3) array in {path}, got shape {arr.shape}")
-    if arr.shape[1] < 3:
-        raise LoadError(f"expected at least 3 columns (x, y, z) in {path}, got {arr.shape[1]}")
     points = arr[:, :3].astype(np.float64)
     _check_points(points, path)
     return points
