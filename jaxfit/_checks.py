@@ -32,6 +32,19 @@ def model_class(shape) -> type[Model]:
 #: (the largest float is ~1.8e308), so beyond ~1e154 they overflow; 1e150 leaves room for
 #: sums of squares.
 MAX_COORDINATE = 1e150
+#: Smallest extent of a cloud jaxfit fits: below ~1e-154 squared distances underflow (a
+#: sphere 1e-200 across was fitted with no inliers).
+MIN_EXTENT = 1e-140
+
+
+def spanning(lo, hi) -> None:
+    """Raise a ValueError if a cloud with bounds lo, hi (3,) spans more than nothing but
+    less than ``MIN_EXTENT`` (coincident points are the caller's to report)."""
+    extent = float(np.max(np.asarray(hi) - np.asarray(lo)))
+    if 0 < extent < MIN_EXTENT:
+        raise ValueError(f"the cloud spans only {extent:.3g}: its squared distances "
+                         f"underflow float64; rescale the points (to at least "
+                         f"{MIN_EXTENT:.0e} across)")
 
 
 def cloud(points, name: str = "points", limit: float | None = MAX_COORDINATE) -> np.ndarray:

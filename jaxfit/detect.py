@@ -42,7 +42,7 @@ import jax
 import numpy as np
 
 from . import _checks
-from .engine import DEFAULT_THRESHOLD_FRACTION, FitOptions, fit
+from .engine import FitOptions, default_threshold, fit
 from .normals import estimate_normals
 from .shapes import Model
 
@@ -50,6 +50,8 @@ from .shapes import Model
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")
 #: Most passes of the final assignment (see ``_settled``); scenes settle in 2-4.
 SETTLE_ROUNDS = 8
+#: Neighbours of each point's estimated normal (fewer in a smaller cloud).
+NORMAL_K = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,14 +214,12 @@ def _check_options(points, shapes, min_inliers, threshold, normals, max_angle, c
                          f"sample of {', '.join(c.name for c in classes)}), got {min_inliers}")
     if len(cloud) < min_inliers:
         raise ValueError(f"too few points: {len(cloud)} < min_inliers = {min_inliers}")
+    _checks.spanning(cloud.min(axis=0), cloud.max(axis=0))
     if threshold is None:
         sides = np.ptp(cloud, axis=0)
         if not sides.max() > 0:
             raise _checks.FitError("all points coincide: there is no shape to detect")
-        diagonal = np.linalg.norm(sides)
-        if not diagonal > 0:  # squaring sides of 1e-200 gave 0: scaled by the longest
-            diagonal = sides.max() * np.linalg.norm(sides / sides.max())
-        threshold = DEFAULT_THRESHOLD_FRACTION * diagonal
+        threshold = default_threshold(sides)
     threshold = _checks.positive(threshold, "threshold")
     max_angle = _checks.positive(max_angle, "max_angle")
     if max_angle > 90:
@@ -279,7 +279,7 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
                        tolerance, fit_options)
     fit_points = _checks.positive(fit_points, "fit_points", integer=True)
     if normals is None:
-        normals = estimate_normals(cloud, orient=None)
+        normals = estimate_normals(cloud, k=min(NORMAL_K, len(cloud)), orient=None)
     key = _checks.prng_key(key)
     spacing = median_spacing(cloud)
     radius = connect * spacing

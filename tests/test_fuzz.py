@@ -19,8 +19,7 @@ size and a fixed budget (``FIT``), and options that compile nothing new.
 
 Every test is derandomized (the same examples on every run). What the fuzzing found is
 kept as an ``@example`` beside the test it broke or as a plain test below the fuzz tests
-(each failed before its fix); one bug outside the files fixed with this module is an
-xfail (``test_a_tiny_threshold_on_an_exact_plane``). The .iv grammar itself is fuzzed
+(each failed before its fix). The .iv grammar itself is fuzzed
 in test_iv.py.
 """
 
@@ -735,11 +734,14 @@ def test_detect_tolerance(tolerance, error):
         _check_scene(call(), PLANE)
 
 
-def test_detect_default_threshold_of_a_tiny_or_coincident_cloud():
+def test_a_tiny_cloud_is_refused_by_name_and_a_coincident_one_has_no_shape():
     """The default threshold squared the sides of the bounding box: 0 for a cloud 1e-200
-    across ("threshold must be a positive finite number, got 0.0", though none was given)."""
-    scene = jaxfit.detect(PLANE * 1e-200, ("plane",), **FIT)
-    assert 0 < scene.threshold < 1e-200
+    across ("threshold must be a positive finite number, got 0.0", though none was given);
+    fit then found a sphere 1e-200 across with no inliers (its distances underflow)."""
+    for call in (lambda p: jaxfit.detect(p, ("plane",), **FIT),
+                 lambda p: jaxfit.fit(p, "plane", **FIT)):
+        with pytest.raises(ValueError, match="the cloud spans only .*e-200"):
+            call(PLANE * 1e-200)
     with pytest.raises(jaxfit.FitError, match="all points coincide"):
         jaxfit.detect(np.ones((20, 3)), ("plane",), **FIT)
 
@@ -752,10 +754,35 @@ def test_detect_shapes_may_be_one_shape():
     assert {d.shape for d in jaxfit.detect(PLANE, "plane", **FIT).shapes} == {"plane"}
 
 
-@pytest.mark.xfail(raises=OverflowError, strict=True, reason=(
-    "outside this module's files: shapes/_geometry.py main_interval makes (extent / "
-    "threshold) histogram bins, so a threshold far below the cloud's size on points "
-    "exactly on the surface overflows int64 here, and at 1e-10 of the size allocates ~50 GB"))
 def test_a_tiny_threshold_on_an_exact_plane():
-    points = np.c_[_BASE[:3, :2], np.zeros(3)] * 1e-160
-    jaxfit.fit(points, "plane", threshold=1e-320, **FIT)
+    """shapes/_geometry.py main_interval made (extent / threshold) histogram bins: a
+    threshold far below the cloud's size on points exactly on the surface overflowed
+    int64 here, and at 1e-10 of the size allocated ~50 GB. It now counts only the
+    occupied bins when there are far more bins than points."""
+    points = np.c_[_BASE[:3, :2], np.zeros(3)] * 1e-100
+    result = jaxfit.fit(points, "plane", threshold=1e-300, **FIT)
+    assert result.num_inliers >= 3
+    tracemalloc.start()
+    try:
+        exact = np.c_[np.random.default_rng(0).uniform(-1, 1, (200, 2)), np.zeros(200)]
+        fine = jaxfit.fit(exact, "plane", threshold=1e-10, **FIT)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert fine.num_inliers == 200 and peak < 50e6
+
+
+def test_fit_takes_only_fit_options_and_a_bounded_batch():
+    """fit passed every keyword to fit_batch: skip_failures=True made it return None and
+    thresholds= gave "multiple values"; batch_size=2**28 asked XLA for 151 GB."""
+    for kwargs in ({"skip_failures": True}, {"thresholds": 0.1}):
+        with pytest.raises(TypeError, match="unknown fit option"):
+            jaxfit.fit(PLANE, "plane", **kwargs)
+    with pytest.raises(ValueError, match="batch_size must be at most 65536"):
+        jaxfit.fit(PLANE, "plane", batch_size=2**28)
+
+
+def test_detect_on_fewer_points_than_normal_neighbours():
+    """(estimate_normals' default k=16 raised "k = 16 is larger than the number of points")"""
+    scene = jaxfit.detect(PLANE[:8], ("plane",), min_inliers=4, **FIT)
+    assert sum(len(d.indices) for d in scene.shapes) + len(scene.unassigned) == 8

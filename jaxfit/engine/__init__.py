@@ -16,7 +16,7 @@ points), ``backend`` (every device-specific choice), ``loop`` (the host loop), `
 (``fit``, ``fit_batch`` and result building).
 """
 
-from .cloud import DEFAULT_THRESHOLD_FRACTION, bucket_size
+from .cloud import DEFAULT_THRESHOLD_FRACTION, bucket_size, default_threshold
 from .fit import FitResult, fit, fit_batch
 from .options import Bounds, FitOptions
 from .refine import LevenbergMarquardt, LocalOptimizer
@@ -28,5 +28,5 @@ __all__ = [
     "fit", "fit_batch", "FitResult", "FitOptions", "Bounds", "Status", "Sampler",
     "UniformSampler", "Scorer", "MSAC", "LocalOptimizer", "LevenbergMarquardt",
     "StoppingRule", "AdaptiveStopping", "required_hypotheses", "bucket_size",
-    "DEFAULT_THRESHOLD_FRACTION",
+    "DEFAULT_THRESHOLD_FRACTION", "default_threshold",
 ]

@@ -28,6 +28,12 @@ NORMAL_POOL = 2048
 NORMAL_NEIGHBOURS = 16
 
 
+def default_threshold(sides) -> float:
+    """The default inlier threshold of a cloud whose bounding box has sides (3,):
+    ``DEFAULT_THRESHOLD_FRACTION`` of its diagonal."""
+    return DEFAULT_THRESHOLD_FRACTION * float(np.linalg.norm(sides))
+
+
 def bucket_size(n: int) -> int:
     """Padded point count for a cloud of n points: a power of two, at least MIN_BUCKET."""
     return max(MIN_BUCKET, 1 << (int(n) - 1).bit_length())
@@ -38,6 +44,7 @@ def normalise(points: np.ndarray, bounds=None):
     the cloud's (lo, hi) if already known."""
     lo, hi = column_bounds(points) if bounds is None else bounds
     center = 0.5 * (lo + hi)
+    _checks.spanning(lo, hi)
     scale = float(row_norms(points - center).max())
     if not scale > 0:
         raise _checks.FitError("all points coincide: there is no shape to fit")
@@ -98,7 +105,7 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
     lo, hi = column_bounds(cloud)
     center, scale = normalise(cloud, (lo, hi))
     if threshold is None:
-        threshold = DEFAULT_THRESHOLD_FRACTION * np.linalg.norm(hi - lo)
+        threshold = default_threshold(hi - lo)
     threshold = _checks.positive(threshold, "threshold")
     pool = wanted = None
     if not (uses_normals or bounds.gated):

@@ -61,8 +61,10 @@ def fit(points, shape, *, normals=None, threshold: float | None = None, key=0,
     -------
     FitResult
     """
+    options = FitOptions.build(options, **settings)  # (fit_batch's own keywords are not
+    # settings: skip_failures=True made fit return None)
     return fit_batch([points], shape, normals=None if normals is None else [normals],
-                     thresholds=threshold, key=key, options=options, **settings)[0]
+                     thresholds=threshold, key=key, options=options)[0]
 
 
 def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,

@@ -233,11 +233,24 @@ class FitOptions:
             self,
             confidence=_checks.probability(self.confidence, "confidence"),
             max_hypotheses=_checks.positive(self.max_hypotheses, "max_hypotheses", integer=True),
-            batch_size=_checks.positive(self.batch_size, "batch_size", integer=True),
+            batch_size=_batch_size(self.batch_size),
             max_stall=_checks.positive(self.max_stall, "max_stall", integer=True),
             min_hypotheses=int(min_hypotheses), refine=bool(self.refine), estimator=est.name,
             bounds=bounds,
         )
+
+
+#: Largest ``batch_size``: one call's hypotheses times a bucket's points must stay within
+#: memory and int32 (2**28 asked XLA for 151 GB; 2**31 overflowed).
+MAX_BATCH = 1 << 16
+
+
+def _batch_size(value) -> int:
+    size = _checks.positive(value, "batch_size", integer=True)
+    if size > MAX_BATCH:
+        raise ValueError(f"batch_size must be at most {MAX_BATCH} (jaxfit.engine.options."
+                         f"MAX_BATCH: hypotheses scored in one call), got {size}")
+    return size
 
 
 @functools.lru_cache(maxsize=256)

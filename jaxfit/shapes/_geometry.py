@@ -160,18 +160,26 @@ def main_interval(values, gap):
     """(lo, hi) of the main run of values (N,) along an axis: bins ``gap`` wide holding at
     least a fifth of the fullest bin's count, the contiguous run of them with the most
     values. Strays (outliers near a surface's unbounded continuation) are far sparser
-    than the surface, so they fall below the cut and do not stretch the bounds."""
+    than the surface, so they fall below the cut and do not stretch the bounds.
+
+    Only occupied bins are counted when there are far more bins than values (a gap far
+    below the spread), so memory is O(N) for any gap."""
     v = np.asarray(values, dtype=np.float64)
-    lo, hi = v.min(), v.max()
-    bins = int((hi - lo) // gap) + 1 if hi > lo else 1
-    which = np.minimum(((v - lo) / gap).astype(np.int64), bins - 1)  # uniform bins: no search
-    counts = np.bincount(which, minlength=bins)
-    dense = np.r_[False, counts >= 0.2 * counts.max(), False]
-    starts = np.flatnonzero(~dense[:-1] & dense[1:])
-    ends = np.flatnonzero(dense[:-1] & ~dense[1:])
-    totals = [counts[a:b].sum() for a, b in zip(starts, ends, strict=True)]
-    a, b = starts[int(np.argmax(totals))], ends[int(np.argmax(totals))]
-    inside = v[(which >= a) & (which < b)]
+    lo = v.min()
+    with np.errstate(over="ignore"):  # (a gap below the spread / 1e308: one inf bin)
+        cell = np.floor((v - lo) / gap)  # bin of each value (float: no int overflow)
+    if cell.max() < 4 * len(v) + 16:  # few bins: count them all
+        counts = np.bincount(cell.astype(np.int64))
+        ids = np.flatnonzero(counts).astype(np.float64)
+        counts = counts[counts > 0]
+    else:
+        ids, counts = np.unique(cell, return_counts=True)
+    dense = counts >= 0.2 * counts.max()
+    ids, counts = ids[dense], counts[dense]
+    starts = np.flatnonzero(np.r_[True, np.diff(ids) != 1])  # runs of adjacent dense bins
+    run = int(np.argmax(np.add.reduceat(counts, starts)))
+    first, last = starts[run], (starts[run + 1] if run + 1 < len(starts) else len(ids)) - 1
+    inside = v[(cell >= ids[first]) & (cell <= ids[last])]
     return inside.min(), inside.max()
 
 
