@@ -3,9 +3,11 @@
 ``estimate_normals(points, k=16)`` gives unit normals (N, 3) of a cloud (N, 3): for each
 point, the eigenvector with the smallest eigenvalue of the 3 x 3 covariance of its k
 nearest neighbours (the point itself included). Neighbours come from scipy's ``cKDTree``
-(a brute-force kNN in JAX is O(N^2)); the covariances are batched in NumPy, and their
-smallest eigenvectors found in closed form (``smallest_eigenvectors``;
-``numpy.linalg.eigh`` where that is ill-conditioned).
+(a brute-force kNN in JAX is O(N^2)); for few queries in a large cloud, a tree over the
+points near them only (``knn_near``: cubic cells hashed in one pass over the cloud, the
+same neighbours). The covariances are batched in NumPy, and their smallest eigenvectors
+found in closed form (``smallest_eigenvectors``; ``numpy.linalg.eigh`` where that is
+ill-conditioned).
 
 Orientation (the sign of each normal) follows Hoppe et al. 1992, "Surface reconstruction
 from unorganized points": a minimum spanning tree over the (undirected) k-NN graph with edge
@@ -46,9 +48,14 @@ def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None,
     """Indices (M, k) of the k nearest points of points (N, 3) to each query (M, 3)
     (default: the points themselves, each first among its own neighbours up to ties),
     on ``workers`` threads (-1: all cores); with ``distances``, (distances (M, k),
-    indices)."""
+    indices). Few queries in a large cloud (``few_queries``) are answered from the points
+    near them (``knn_near``), the same neighbours up to ties, without a tree over all."""
     from scipy.spatial import cKDTree
 
+    if queries is not None and few_queries(len(queries), len(points)):
+        found = knn_near(points, k, queries, workers)
+        if found is not None:
+            return found if distances else found[1]
     queries = points if queries is None else queries
     found = cKDTree(points).query(queries, k=k, workers=workers)
     return found if distances else found[1]
@@ -73,6 +80,221 @@ def knn_many(clouds, queries, ks, distances: bool = False) -> list:
             for i, hood in zip(small, found, strict=True):
                 out[i] = hood
     return out
+
+
+#: ``knn_near`` replaces the tree over all N points when N >= NEAR_MIN and the queries
+#: number at most N / NEAR_FACTOR: below that the tree costs less (docs/normals.md).
+NEAR_MIN = 1 << 20
+NEAR_FACTOR = 1024
+#: Each query's first radius is the distance to its SUBSAMPLE_RANK-th nearest point in a
+#: random 1 / SUBSAMPLE of the points, scaled to hold COUNT_SCALE * k points of the whole
+#: cloud (``_radii``): some 90 % of the queries are certified at it (docs/normals.md).
+SUBSAMPLE = 32
+SUBSAMPLE_RANK = 8
+COUNT_SCALE = 2.25
+#: One pass over the cloud keeps the points within HARVEST radii of each query, so that
+#: the queries whose k-th neighbour lies between one and HARVEST radii need no other.
+HARVEST = 1.5
+#: Passes over the cloud after which the tree over all points is used instead.
+MAX_PASSES = 4
+#: Points per block of a pass over the cloud: bounds its temporary arrays' memory.
+CELL_BLOCK = 1 << 18
+#: A k-th neighbour distance certifies a radius r when it is at most r * CERTIFY: the
+#: margin covers the rounding of the cell coordinates (the queries kept within 2^28 base
+#: cells of the origin, radii of at least 4 base cells, ``_radii``: an error under 1e-7
+#: of a cell) and of the distances.
+CERTIFY = 1.0 - 1e-6
+#: Odd 64-bit multipliers of the cell keys (one per axis, one for the level) and of the
+#: two hash tables' slots (the first two).
+_MIX = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9,
+                 0xD6E8FEB86659FD93], dtype=np.uint64)
+
+
+def few_queries(m: int, n: int) -> bool:
+    """Whether m queries among n points go to ``knn_near`` rather than a tree over all."""
+    return n >= NEAR_MIN and 0 < m * NEAR_FACTOR <= n
+
+
+def _cells(points: np.ndarray, origin: np.ndarray, side: float, out=None) -> np.ndarray:
+    """Integer cell coordinates (B, 3) of points (B, 3) in cubic cells of the given side
+    with a corner at origin. ``out``: an optional (>= B, 3) float64 scratch array."""
+    t = np.subtract(points, origin, out=None if out is None else out[:len(points)])
+    t /= side
+    return _floor(t)
+
+
+def _floor(t: np.ndarray) -> np.ndarray:
+    """floor(t) as int64, clipped to +-2^40 (far points stay far, without overflow);
+    overwrites t."""
+    np.floor(t, out=t)
+    np.clip(t, -2.0 ** 40, 2.0 ** 40, out=t)
+    return t.astype(np.int64)
+
+
+def _cell_key(cells: np.ndarray, level) -> np.ndarray:
+    """64-bit keys (B,) of integer cells (B, 3) at levels (B,) or one level."""
+    u = cells.view(np.uint64)
+    key = (u[:, 0] * _MIX[0]) ^ (u[:, 1] * _MIX[1]) ^ (u[:, 2] * _MIX[2])
+    key ^= np.asarray(level, np.uint64) * _MIX[3]
+    return key
+
+
+def _slot(key: np.ndarray, which: int, bits: int) -> np.ndarray:
+    """Slots (B,) in [0, 2^bits) of keys (B,) in hash table ``which`` (0 or 1)."""
+    return (key * _MIX[which]) >> np.uint64(64 - bits)
+
+
+def _levels(radii: np.ndarray, base: float) -> np.ndarray:
+    """Cell level (M,) of each query's box of half-side radii (M,) (>= 4 base): a cell
+    side in (radii / 4, radii / 2], except that the levels within one of the median's
+    take the median's (sides in (radii / 8, radii]), so that a pass over the cloud
+    hashes most points once."""
+    own = np.maximum(np.floor(np.log2(radii / base)).astype(np.int64) - 1, 0)
+    shared = int(np.median(own))
+    return np.where(np.abs(own - shared) <= 1, shared, own)
+
+
+def _box_cells(queries, radii, origin, base: float):
+    """(cells (C, 3), levels (C,)): every cell at each query's level (``_levels``) that
+    meets the box of half-side radii around it. The box is taken in base-cell units, as
+    the points' cells are, so its rounding is that of the points' (``CERTIFY``)."""
+    levels = _levels(radii, base)
+    t, half = (queries - origin) / base, (radii / base)[:, None]
+    lo = _floor(t - half) >> levels[:, None]
+    span = (_floor(t + half) >> levels[:, None]) - lo + 1
+    sizes = span.prod(axis=1)
+    owner = np.repeat(np.arange(len(queries)), sizes)
+    j = np.arange(sizes.sum()) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    ny, nz = span[owner, 1], span[owner, 2]
+    steps = np.stack([j // (ny * nz), (j // nz) % ny, j % nz], axis=1)
+    return lo[owner] + steps, levels[owner]
+
+
+def near_mask(points, queries, radii, origin, base: float) -> np.ndarray:
+    """Boolean mask (N,) of points (N, 3) holding at least every point within radii[j]
+    (>= 4 base) of query j (M, 3) along each axis: the points of the cells that meet the
+    query's box (``_box_cells``; cells of side base * 2^level, nested across levels, a
+    corner at origin). Those cells are marked in two one-bit hash tables, a point is kept
+    where its cell is marked in both: a few points of other cells (collisions) are kept
+    too, one in some thousand per level where a table is 1/32 full."""
+    cells, levels = _box_cells(queries, radii, origin, base)
+    bits = int(min(24, max(16, (32 * len(cells) - 1).bit_length())))
+    keys = _cell_key(cells, levels)
+    tables = np.zeros((2, 1 << bits), bool)
+    for which in (0, 1):
+        tables[which, _slot(keys, which, bits)] = True
+    out = np.empty(len(points), bool)
+    scratch = np.empty((min(CELL_BLOCK, len(points)), 3))
+    present = np.unique(levels)
+    for start in range(0, len(points), CELL_BLOCK):
+        cells = _cells(points[start:start + CELL_BLOCK], origin, base, scratch)
+        hit = out[start:start + CELL_BLOCK]
+        hit[:] = False
+        for level in present:
+            keys = _cell_key(cells >> level, level)
+            first = np.flatnonzero(tables[0, _slot(keys, 0, bits)])
+            hit[first[tables[1, _slot(keys[first], 1, bits)]]] = True
+    return out
+
+
+def _radii(points, k: int, queries, origin) -> tuple[float, np.ndarray, np.ndarray]:
+    """(base, radii (M,), bounds (M,)): each query's first search radius, the finest
+    cell side, and a radius at which each is sure to be certified (counting repeated
+    points as many): its k-th neighbour distance in a random 1 / SUBSAMPLE of the points
+    (inf if that holds fewer).
+
+    The radius scales the query's SUBSAMPLE_RANK-th neighbour distance in the subsample
+    by the subsample's density ratio to the power 1 / d, d the cloud's dimension (1 to
+    3) from how that distance grows with the rank. The base is a quarter of the least
+    radius, or more to keep the queries within 2^28 cells of the origin; it is 0 where
+    every sampled point and query coincide."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    picked = np.sort(rng.integers(0, len(points), max(k, len(points) // SUBSAMPLE)))
+    sub = points[picked[np.r_[True, picked[1:] != picked[:-1]]]]  # (distinct: a bound)
+    rank = min(SUBSAMPLE_RANK, len(sub))
+    ranks = [max(1, rank // 2), rank, min(k, len(sub))]
+    half, far, bounds = cKDTree(sub).query(queries, k=ranks)[0].T
+    if len(sub) < k:
+        bounds = np.full(len(queries), np.inf)
+    growth = np.log(far[half > 0] / half[half > 0])  # log(2) / d for d dimensions
+    dim = 3.0 if not growth.size else float(
+        np.clip(np.log(2.0) / max(np.median(growth), np.log(2.0) / 3.0), 1.0, 3.0))
+    radii = (COUNT_SCALE * k / (rank * SUBSAMPLE)) ** (1.0 / dim) * far
+    least = radii[radii > 0].min(initial=np.inf) / 4.0
+    base = max(least if least < np.inf else 0.0, np.abs(queries - origin).max() * 2.0 ** -28)
+    return float(base), np.maximum(radii, 4.0 * base), bounds
+
+
+def distinct_rows(points: np.ndarray) -> np.ndarray:
+    """The distinct rows of points (N, 3) in lexicographic order, as
+    ``numpy.unique(points, axis=0)`` (-0.0 equal to 0.0), by a lexsort of the
+    columns, several times faster."""
+    ordered = points[np.lexsort(points.T[::-1])]
+    keep = np.ones(len(ordered), bool)
+    keep[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    return ordered[keep]
+
+
+def _neighbours(points, near, queries, k: int, distinct: bool, workers: int):
+    """(distances (M, k), indices (M, k) into pool, pool) of the k nearest of
+    pool = points[near] (with ``distinct``: its distinct points) to each query (M, 3);
+    distances inf where pool has fewer than k points."""
+    from scipy.spatial import cKDTree
+
+    pool = distinct_rows(points[near]) if distinct else points[near]
+    if len(pool) < k:
+        return np.full((len(queries), k), np.inf), np.zeros((len(queries), k), np.int64), pool
+    dist, hood = cKDTree(pool).query(queries, k=k, workers=workers)
+    return dist.reshape(len(queries), k), hood.reshape(len(queries), k), pool
+
+
+def knn_near(points, k: int, queries, workers: int = -1, distinct: bool = False):
+    """``knn(points, k, queries, distances=True)``, the same neighbours up to ties, from
+    trees over the points near the queries only; with ``distinct``, (base, indices
+    (M, k) into base) of the k nearest distinct points, base made of them; None where
+    that would cost about a tree over all points.
+
+    A query is certified at radius r when its k-th neighbour among the points near it
+    (``near_mask``) is within r: they are then its k nearest among all. One pass over
+    the cloud keeps the points within HARVEST radii (``_radii``) of the queries; a small
+    tree certifies what it can at one radius, then one at HARVEST; the others go round
+    again at twice that, or less where a k-th distance found (among the points kept, or
+    a subsample) shows a radius that certifies."""
+    origin = queries[0]
+    base, radii, bounds = _radii(points, k, queries, origin)
+    if not base > 0:
+        return None
+    m = len(queries)
+    dist, hood, pools, size = np.empty((m, k)), np.empty((m, k), np.int64), [], 0
+    pending = np.arange(m)
+    for _ in range(MAX_PASSES):
+        if not len(pending) or radii[pending].max() > 2.0 ** 36 * base:  # (exact cells)
+            break
+        harvest = np.flatnonzero(near_mask(points, queries[pending],
+                                           HARVEST * radii[pending], origin, base))
+        if len(harvest) * 2 > len(points):
+            return None
+        for reach in (1.0, HARVEST):
+            ahead, r = queries[pending], reach * radii[pending]
+            near = harvest[near_mask(points[harvest], ahead, r, origin, base)]
+            found, into, pool = _neighbours(points, near, ahead, k, distinct, workers)
+            ok = found[:, -1] <= r * CERTIFY
+            dist[pending[ok]] = found[ok]
+            hood[pending[ok]] = into[ok] + size if distinct else near[into[ok]]
+            if distinct and ok.any():
+                pools.append(pool)
+                size += len(pool)
+            pending, far = pending[~ok], found[~ok, -1]
+            if not len(pending):
+                break
+        bound = np.minimum(bounds[pending], far) / CERTIFY  # certifies (a superset's)
+        radii[pending] = np.maximum(np.minimum(2.0 * HARVEST * radii[pending], bound),
+                                    radii[pending])
+    if len(pending):
+        return None
+    return (np.concatenate(pools), hood) if distinct else (dist, hood)
 
 
 def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
@@ -245,6 +467,10 @@ def distinct_neighbours(points, queries, k, dist, hood):
     stored 16 times had none, and every normal was arbitrary)."""
     if dist.shape[1] < 2 or not (dist[:, 1] == 0).any():
         return points, k, hood
+    if few_queries(len(queries), len(points)):
+        found = knn_near(points, k, queries, distinct=True)
+        if found is not None:
+            return found[0], k, found[1]
     distinct = np.unique(points, axis=0)
     if len(distinct) < 3:
         return points, k, hood
@@ -259,17 +485,29 @@ def normals_at(points: np.ndarray, indices: np.ndarray, k: int = 16) -> np.ndarr
     return normals_at_many([points], [indices], [k])[0]
 
 
+def read_rows(points: np.ndarray, neighbours: np.ndarray):
+    """(rows, neighbours into rows): the points (N, 3) that neighbours (M, k) read, where
+    they are few (else points and neighbours as given), so that stacking clouds for one
+    PCA copies only those (a cloud of 1e7 points was copied whole for 2048 normals)."""
+    if neighbours.size * 4 >= len(points):
+        return points, neighbours
+    flat = np.sort(neighbours, axis=None)
+    read = flat[np.r_[True, flat[1:] != flat[:-1]]]
+    return points[read], np.searchsorted(read, neighbours)
+
+
 def normals_at_many(clouds, indices, ks) -> list[np.ndarray]:
-    """``normals_at(clouds[i], indices[i], ks[i])`` for every cloud: one KD-tree each,
-    one PCA per neighbourhood size over all their clouds stacked (the eigen-solver's fixed
-    cost, some 50 NumPy calls, is paid once per block, not once per cloud)."""
+    """``normals_at(clouds[i], indices[i], ks[i])`` for every cloud: one neighbour search
+    each (``knn``), one PCA per neighbourhood size over all their clouds stacked (the
+    points their neighbourhoods read, ``read_rows``: the eigen-solver's fixed cost, some
+    50 NumPy calls, is paid once per block, not once per cloud)."""
     ks = [_check_k(k, len(c)) for c, k in zip(clouds, ks, strict=True)]
     queries = [c[i] for c, i in zip(clouds, indices, strict=True)]
     found = knn_many(clouds, queries, ks, distances=True)
     clouds, neighbours = list(clouds), [None] * len(clouds)
     for i, (dist, hood) in enumerate(found):
-        clouds[i], ks[i], neighbours[i] = distinct_neighbours(clouds[i], queries[i], ks[i],
-                                                              dist, hood)
+        base, ks[i], hood = distinct_neighbours(clouds[i], queries[i], ks[i], dist, hood)
+        clouds[i], neighbours[i] = read_rows(base, hood)
     out = [None] * len(clouds)
     for k in set(ks):
         which = [i for i, ki in enumerate(ks) if ki == k]

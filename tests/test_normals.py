@@ -1,5 +1,7 @@
 """jaxfit.estimate_normals: accuracy against true normals, orientation, bad input."""
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -169,3 +171,145 @@ def test_repeated_points_give_the_surface_normals():
     for normals, at in ((jaxfit.estimate_normals(repeated, orient=None), repeated),
                         (jaxfit.normals.normals_at(repeated, some), repeated[some])):
         assert np.median(np.abs(np.einsum("ij,ij->i", normals, at))) > 0.99
+
+
+# Few queries in a large cloud: neighbours from the points near them only (issue 14).
+
+NEAR_CLOUDS = ["clusters", "far", "repeated", "sparse", "surface", "uniform"]
+
+
+@functools.cache
+def _near_clouds():
+    """Clouds knn_near must answer exactly, with queries: 200k points each (below the
+    real thresholds: knn_near is called directly)."""
+    rng = np.random.default_rng(11)
+    n = 200_000
+    cylinder = Cylinder(np.zeros(3), np.array([0.0, 0.6, 0.8]), np.float64(0.5), np.float64(2.0))
+    surface = cylinder.sample(n, rng)[0] + rng.uniform(-0.002, 0.002, (n, 1))
+    centres, scales = rng.uniform(-10, 10, (20, 3)), 10.0 ** rng.uniform(-3, 0, 20)
+    which = rng.integers(0, 20, n)
+    clusters = centres[which] + rng.normal(size=(n, 3)) * scales[which, None]
+    repeated = np.repeat(rng.uniform(-1, 1, (n // 8, 3)), 8, axis=0)[rng.permutation(n)]
+    # A dense blob in a corner of a sparse halo; queries in the halo and off the cloud
+    # past the opposite corner (their first radii, scaled as inside a cloud, are far too
+    # small).
+    halo = np.vstack([rng.normal(size=(n - 50_000, 3)) * 0.01 - 45.0,
+                      rng.uniform(-50, 50, (50_000, 3))])
+    outer = halo[-50_000:][halo[-50_000:].min(axis=1) > 0][:40]
+    corners = rng.uniform(60, 80, (20, 3))
+    off = np.vstack([outer, corners, halo[:40]])
+    far = surface + 1e6  # cell coordinates rounded as far from the origin
+    clouds = {"uniform": rng.uniform(-1, 1, (n, 3)), "surface": surface,
+              "clusters": clusters, "repeated": repeated, "far": far}
+    cases = {name: (p, p[np.sort(rng.choice(n, 100, replace=False))])
+             for name, p in clouds.items()}
+    cases["sparse"] = (halo, off)
+    return cases
+
+
+def _assert_same_neighbours(points, found, full, k):
+    """Same distances; the same neighbour points (as sets of coordinates) wherever the
+    k-th and (k+1)-th distances differ (else the tie may be broken either way)."""
+    (dist, hood), (dist_all, hood_all) = found, full
+    np.testing.assert_array_equal(dist, dist_all[:, :k])
+    clear = dist_all[:, k] > dist_all[:, k - 1]
+    assert clear.mean() > 0.5
+    for row in np.flatnonzero(clear):
+        a, b = points[hood[row]], points[hood_all[row, :k]]
+        np.testing.assert_array_equal(a[np.lexsort(a.T)], b[np.lexsort(b.T)])
+
+
+@pytest.mark.parametrize("name", NEAR_CLOUDS)
+def test_near_neighbours_equal_the_full_trees(name):
+    from scipy.spatial import cKDTree
+
+    import jaxfit.normals as nm
+
+    points, queries = _near_clouds()[name]
+    found = nm.knn_near(points, 16, queries)
+    assert found is not None
+    _assert_same_neighbours(points, found, cKDTree(points).query(queries, 17), 16)
+
+
+def test_near_radii_grow_until_certified(monkeypatch):
+    """First radii far too small: the queries go round again, at larger radii, until
+    their k-th neighbour is within one; the neighbours are still exact."""
+    from scipy.spatial import cKDTree
+
+    import jaxfit.normals as nm
+
+    passes = []
+    near_mask = nm.near_mask
+
+    def spy(points, *args):
+        passes.append(len(points))
+        return near_mask(points, *args)
+
+    monkeypatch.setattr(nm, "near_mask", spy)
+    monkeypatch.setattr(nm, "COUNT_SCALE", 0.1)
+    points, queries = _near_clouds()["surface"]
+    found = nm.knn_near(points, 16, queries)
+    assert found is not None and passes.count(len(points)) >= 2
+    _assert_same_neighbours(points, found, cKDTree(points).query(queries, 17), 16)
+    passes.clear()
+    monkeypatch.setattr(nm, "MAX_PASSES", 1)  # not certified within the passes allowed
+    assert nm.knn_near(points, 16, queries) is None and passes.count(len(points)) == 1
+
+
+def test_near_distinct_neighbours_equal_the_full_trees():
+    from scipy.spatial import cKDTree
+
+    import jaxfit.normals as nm
+
+    points, queries = _near_clouds()["repeated"]
+    base, hood = nm.knn_near(points, 16, queries, distinct=True)
+    distinct = np.unique(points, axis=0)
+    dist_all, hood_all = cKDTree(distinct).query(queries, 17)
+    np.testing.assert_array_equal(np.linalg.norm(base[hood] - queries[:, None], axis=2),
+                                  dist_all[:, :16])
+    clear = dist_all[:, 16] > dist_all[:, 15]
+    np.testing.assert_array_equal(base[hood][clear], distinct[hood_all[clear, :16]])
+    np.testing.assert_array_equal(nm.distinct_rows(points), distinct)
+
+
+def test_near_gives_up_where_the_boxes_hold_most_points():
+    import jaxfit.normals as nm
+
+    points, _ = _near_clouds()["uniform"]
+    queries = points[:2000]  # boxes around 2000 queries hold most of 200k points
+    assert nm.knn_near(points, 16, queries) is None
+
+
+def test_large_clouds_few_queries_take_the_near_path():
+    import jaxfit.normals as nm
+    from jaxfit.engine.cloud import NORMAL_POOL
+
+    assert nm.few_queries(NORMAL_POOL, 10_000_000)
+    assert not nm.few_queries(NORMAL_POOL, 1_000_000)  # small clouds: as before
+    assert not nm.few_queries(0, 10_000_000)
+
+
+@pytest.mark.parametrize("name", ["surface", "repeated"])
+def test_normals_of_few_points_skip_the_tree_over_all(monkeypatch, name):
+    """normals_at (what fit calls) on a large cloud builds no tree over all its points,
+    and gives the same normals bit for bit (repeated points: among the distinct ones)."""
+    import scipy.spatial
+
+    import jaxfit.normals as nm
+
+    points, _ = _near_clouds()[name]
+    indices = np.sort(np.random.default_rng(4).choice(len(points), 100, replace=False))
+    full = nm.normals_at(points, indices)
+    sizes, tree = [], scipy.spatial.cKDTree
+
+    class Spy(tree):
+        def __init__(self, data, *args, **kwargs):
+            sizes.append(len(data))
+            super().__init__(data, *args, **kwargs)
+
+    monkeypatch.setattr(scipy.spatial, "cKDTree", Spy)
+    monkeypatch.setattr(nm, "NEAR_MIN", 1000, raising=False)
+    monkeypatch.setattr(nm, "NEAR_FACTOR", 1000, raising=False)
+    near = nm.normals_at(points, indices)
+    assert sizes and max(sizes) < len(points) // 4
+    np.testing.assert_array_equal(near, full)
