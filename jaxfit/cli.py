@@ -1,4 +1,5 @@
-"""Command line: ``jaxfit fit CLOUD --shape S``, ``demo``, ``decompose`` and ``evaluate``.
+"""Command line: ``jaxfit fit CLOUD --shape S``, ``demo``, ``decompose`` (``--urdf``,
+``--mjcf``: simulator models) and ``evaluate``.
 
 The choices of ``--shape``, ``--estimator``, ``--scenario`` and ``--object`` come from
 ``jaxfit.shapes.REGISTRY``, ``ESTIMATORS``, ``scenarios.SCENARIOS`` and
@@ -66,6 +67,25 @@ def _check_outputs(args) -> None:
         _file_target(args.mesh, "--mesh", MESH_OUTPUTS)
     if getattr(args, "out", None) and not (args.command == "demo" and args.shape):
         _folder_target(args.out, "--out")  # (demo --shape fits one cloud: no folder)
+    if getattr(args, "urdf", False) or getattr(args, "mjcf", False):
+        _check_sim_options(args)
+
+
+def _check_sim_options(args) -> None:
+    """--urdf and --mjcf: they need --out, a usable --name, and positive --density and
+    --scale; their files must be writable."""
+    from .io.sim import NAME
+
+    if not args.out:
+        raise ValueError("--urdf and --mjcf write into the --out folder: give --out DIR")
+    if not NAME.fullmatch(args.name):
+        raise ValueError(f"--name {args.name!r}: use letters, digits, '_', '.' or '-'")
+    for flag, value in (("--density", args.density), ("--scale", args.scale)):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{flag} must be positive and finite, got {value}")
+    for flag, suffix in (("--urdf", ".urdf"), ("--mjcf", ".xml")):
+        if getattr(args, flag[2:]):
+            _file_target(str(Path(args.out) / f"{args.name}{suffix}"), flag)
 
 
 def _print_model(model, title):
@@ -169,6 +189,17 @@ def _parser():
     decompose.add_argument("--seed", type=int, default=0)
     decompose.add_argument("--out", default=None,
                            help="folder for parts.json, decomposition.glb, preview.png")
+    decompose.add_argument("--urdf", action="store_true",
+                           help="also write the primitives as a URDF robot, OUT/NAME.urdf")
+    decompose.add_argument("--mjcf", action="store_true",
+                           help="also write them as a MuJoCo model, OUT/NAME.xml")
+    decompose.add_argument("--name", default="object",
+                           help="--urdf/--mjcf: the body's name and file stem (object)")
+    decompose.add_argument("--density", type=float, default=1000.0,
+                           help="--urdf/--mjcf: mass per unit volume in written units (1000)")
+    decompose.add_argument("--scale", type=float, default=1.0,
+                           help="--urdf/--mjcf: multiplies every length (0.001 for a model "
+                                "in millimetres; default 1)")
     decompose.set_defaults(run=_cmd_decompose)
     evaluate = sub.add_parser(
         "evaluate", help="the thesis's RN/RNIM/SN/SNIM evaluation: CSV, tables and plots")
@@ -202,6 +233,16 @@ def _cmd_decompose(args):
     result = decompose(args.input, gain=args.gain, min_points=args.min_points,
                        num_points=args.num_points, key=args.seed, progress=True)
     _report_decomposition(result, args.out)
+    if args.urdf or args.mjcf:
+        from .io.sim import write_mjcf, write_urdf
+
+        models = [part.model for part in result.parts]
+        options = {"name": args.name, "density": args.density, "scale": args.scale}
+        out = Path(args.out)
+        if args.urdf:
+            print(f"wrote {write_urdf(models, out / f'{args.name}.urdf', **options)}")
+        if args.mjcf:
+            print(f"wrote {write_mjcf(models, out / f'{args.name}.xml', **options)}")
 
 
 def _demo_decomposition(args):
