@@ -1,0 +1,473 @@
+"""Pre-grasps of a parallel-jaw gripper from an object's primitives, after GraspIt!'s
+primitive planner (Miller, Knoop, Christensen & Allen 2003, "Automatic grasp planning
+using shape primitives").
+
+Each part's primitive proposes approach directions and closing axes in its canonical
+frame (``model.transform()``, docs/robot.md):
+
+- box: along each face normal, closing across either pair of faces perpendicular to it,
+  on three lines across the face;
+- cylinder: radial at five heights and eight azimuths, closing around the diameter or
+  along the axis; along the axis from both ends, closing at four rotations about it;
+- sphere: 32 directions around it (a randomly rotated Fibonacci sphere), three closing
+  rotations about each;
+- cone: radial at four heights and eight azimuths (both closings), from the base and from
+  the apex at four rotations;
+- plane (a bounded patch): from eight directions in its plane, closing across it.
+
+Azimuths and rotations are offset at random per part (NumPy, seeded from ``key``: the
+same key gives the same grasps). All candidates of all parts are then filtered and
+scored in one jitted JAX call against the object's points (the whole cloud, so a grasp
+on one part also avoids the others): the open hand slides along its approach axis until
+its fingers or palm would touch a point, or its fingertips reach the approach line's
+centre; the points between the fingers are the closing region, the jaws close on them
+(the hand re-centred between them, as a compliant wrist would), and the grasp is kept
+when the region holds enough points, the contact width fits (``max_width``), the gripper
+at that opening (palm and finger boxes) touches no point, and the surface normals at the
+points nearest the two finger pads are close to the closing axis (antipodal quality).
+
+Grasp frame (``Grasps.poses``, 4x4 in the cloud's coordinates): origin midway between
+the fingertips; local +Z the approach direction (from the palm towards the fingertips,
+into the object); local +Y the closing axis (the fingers sit at y = +-width/2 and close
+along it); +X = Y x Z, across the finger pads. The pre-grasp of GraspIt!'s planner, the
+hand at a standoff, is ``Grasps.pregrasp(standoff)``: the pose moved back along -Z.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _checks
+from .shapes import mass_properties
+from .shapes._geometry import frame
+
+#: Candidates are padded to a multiple of this and points to a power of two (at least
+#: ``MIN_POINTS_BUCKET``), so the filter compiles once per bucket, not per object.
+CANDIDATE_BUCKET = 256
+MIN_POINTS_BUCKET = 1024
+#: Points nearest each finger pad whose normals measure the antipodal quality.
+PAD_POINTS = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class ParallelJaw:
+    """A parallel-jaw gripper: two finger boxes on a palm box, in the grasp frame (module
+    docstring), in the cloud's units.
+
+    max_width : widest opening, between the inner faces of the fingers.
+    finger_depth : length of the fingers along the approach axis (Z); the fingers span
+        z in [-finger_depth, 0].
+    finger_width : width of the finger pads across them (X).
+    finger_thickness : thickness of a finger along the closing axis (Y); default a quarter
+        of ``finger_width``.
+    palm_depth : palm thickness along Z, behind the fingers (z in [-finger_depth -
+        palm_depth, -finger_depth]); default half of ``finger_depth``.
+    palm_width : palm size along X; default ``finger_width``. Along Y the palm spans the
+        fingers at ``max_width``.
+    clearance : margin kept between the gripper and the points while approaching and
+        added to the contact width on each side for the pre-grasp opening; default 2 % of
+        ``max_width``; less than ``max_width / 4``.
+    """
+
+    max_width: float
+    finger_depth: float
+    finger_width: float
+    finger_thickness: float | None = None
+    palm_depth: float | None = None
+    palm_width: float | None = None
+    clearance: float | None = None
+
+    def __post_init__(self):
+        put = functools.partial(object.__setattr__, self)
+        for name in ("max_width", "finger_depth", "finger_width"):
+            put(name, _checks.positive(getattr(self, name), f"ParallelJaw {name}"))
+        defaults = {"finger_thickness": self.finger_width / 4, "palm_depth": self.finger_depth / 2,
+                    "palm_width": self.finger_width, "clearance": 0.02 * self.max_width}
+        for name, default in defaults.items():
+            value = getattr(self, name)
+            if value is None:
+                put(name, float(default))
+            elif name == "clearance":
+                value = _checks.non_negative(value, "ParallelJaw clearance")
+                if not value < self.max_width / 4:
+                    raise ValueError(f"ParallelJaw clearance must be less than max_width / 4 "
+                                     f"= {self.max_width / 4!r}, got {value!r}")
+                put(name, value)
+            else:
+                put(name, _checks.positive(value, f"ParallelJaw {name}"))
+        if self.palm_width < self.finger_width:
+            raise ValueError(f"ParallelJaw palm_width ({self.palm_width!r}) must be at least "
+                             f"finger_width ({self.finger_width!r})")
+
+    def boxes(self, width: float) -> np.ndarray:
+        """(3, 2, 3): lower and upper corners in the grasp frame of the palm and the two
+        fingers (-Y, +Y) at opening ``width``."""
+        t, hw, fd = self.finger_thickness, self.finger_width / 2, self.finger_depth
+        span = self.max_width / 2 + t
+        return np.array([
+            [[-self.palm_width / 2, -span, -fd - self.palm_depth],
+             [self.palm_width / 2, span, -fd]],
+            [[-hw, -width / 2 - t, -fd], [hw, -width / 2, 0.0]],
+            [[-hw, width / 2, -fd], [hw, width / 2 + t, 0.0]],
+        ])
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Grasps:
+    """Grasp candidates that passed the filter, best first.
+
+    poses : (K, 4, 4) grasp frames in the cloud's coordinates (module docstring: +Z
+        approach, +Y closing axis, origin midway between the fingertips).
+    widths : (K,) pre-grasp opening: the contact width plus the clearance on each side,
+        at most ``max_width``.
+    contact_widths : (K,) distance between the outermost points the jaws close on.
+    contacts : (K, 2, 3) centroids of the points nearest the -Y and +Y finger pads.
+    parts : (K,) index of the part (``Decomposition.parts``) whose primitive proposed it.
+    primitives : (K,) that primitive's name.
+    scores : (K,) antipodal quality x alignment x centre-of-mass preference, in [0, 1].
+    antipodal : (K,) the lower of the two pads' mean |normal . closing axis|.
+    gripper : the ParallelJaw.
+    num_candidates : candidates proposed before filtering.
+    seconds : planning time.
+    """
+
+    poses: np.ndarray
+    widths: np.ndarray
+    contact_widths: np.ndarray
+    contacts: np.ndarray
+    parts: np.ndarray
+    primitives: np.ndarray
+    scores: np.ndarray
+    antipodal: np.ndarray
+    gripper: ParallelJaw
+    num_candidates: int
+    seconds: float
+
+    def __len__(self) -> int:
+        return len(self.scores)
+
+    @property
+    def approach(self) -> np.ndarray:
+        """(K, 3) approach directions (the poses' +Z)."""
+        return self.poses[:, :3, 2]
+
+    @property
+    def closing(self) -> np.ndarray:
+        """(K, 3) closing axes (the poses' +Y)."""
+        return self.poses[:, :3, 1]
+
+    def pregrasp(self, standoff: float | None = None) -> np.ndarray:
+        """(K, 4, 4) the poses moved back by ``standoff`` along their -Z (default the
+        finger depth): where the open hand starts before approaching."""
+        standoff = self.gripper.finger_depth if standoff is None else _checks.non_negative(
+            standoff, "standoff")
+        out = self.poses.copy()
+        out[:, :3, 3] -= standoff * self.approach
+        return out
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the gripper, the frame convention and one record per grasp."""
+        return {
+            "frame": "origin midway between the fingertips, +Z approach, +Y closing axis",
+            "gripper": self.gripper.to_dict(),
+            "num_candidates": self.num_candidates,
+            "seconds": self.seconds,
+            "grasps": [{"pose": self.poses[i].tolist(), "width": float(self.widths[i]),
+                        "contact_width": float(self.contact_widths[i]),
+                        "contacts": self.contacts[i].tolist(), "part": int(self.parts[i]),
+                        "primitive": str(self.primitives[i]), "score": float(self.scores[i]),
+                        "antipodal": float(self.antipodal[i])} for i in range(len(self))],
+        }
+
+
+# ----------------------------------------------------------------------------------------
+# Candidates per primitive (NumPy), in the primitive's canonical frame.
+
+
+def _circle(angles):
+    return np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=-1)
+
+
+def _radial(heights, azimuths):
+    """Approaches towards the Z axis at each height and azimuth, closing around it
+    (tangent) and along it (axial): (centres, approaches, closings)."""
+    h, a = np.meshgrid(heights, azimuths, indexing="ij")
+    h, a = h.ravel(), a.ravel()
+    inward = -_circle(a)
+    tangent = np.cross([0.0, 0.0, 1.0], inward)
+    centres = np.stack([np.zeros_like(h), np.zeros_like(h), h], axis=-1)
+    z = np.broadcast_to([0.0, 0.0, 1.0], inward.shape)
+    return (np.concatenate([centres, centres]), np.concatenate([inward, inward]),
+            np.concatenate([tangent, z]))
+
+
+def _along_z(centre_z, direction, rotations):
+    """Approaches along +-Z (``direction``) through (0, 0, centre_z), closing at each
+    rotation about Z."""
+    n = len(rotations)
+    centres = np.tile([0.0, 0.0, centre_z], (n, 1))
+    return centres, np.tile([0.0, 0.0, direction], (n, 1)), _circle(rotations)
+
+
+def _join(*groups):
+    return tuple(np.concatenate(parts) for parts in zip(*groups, strict=True))
+
+
+def _box_candidates(model, rng):
+    e = np.asarray(model.extents, np.float64)
+    centres, approaches, closings = [], [], []
+    for a in range(3):
+        for b in range(3):
+            if b == a:
+                continue
+            c = 3 - a - b  # the axis along the face that neither approach nor closing takes
+            for sign in (-1.0, 1.0):
+                for offset in (-0.25, 0.0, 0.25):
+                    centres.append(offset * e[c] * np.eye(3)[c])
+                    approaches.append(-sign * np.eye(3)[a])
+                    closings.append(np.eye(3)[b])
+    return np.array(centres), np.array(approaches), np.array(closings)
+
+
+def _cylinder_candidates(model, rng):
+    h = float(model.height)
+    heights = np.linspace(-h / 2, h / 2, 7)[1:-1]
+    azimuths = rng.uniform(0, 2 * np.pi) + np.arange(8) * (2 * np.pi / 8)
+    rotations = rng.uniform(0, np.pi) + np.arange(4) * (np.pi / 4)
+    return _join(_radial(heights, azimuths), _along_z(0.0, -1.0, rotations),
+                 _along_z(0.0, 1.0, rotations))
+
+
+def _cone_candidates(model, rng):
+    h = float(model.height)
+    heights = np.linspace(0.0, h, 6)[1:-1]
+    azimuths = rng.uniform(0, 2 * np.pi) + np.arange(8) * (2 * np.pi / 8)
+    rotations = rng.uniform(0, np.pi) + np.arange(4) * (np.pi / 4)
+    return _join(_radial(heights, azimuths), _along_z(h / 4, 1.0, rotations),
+                 _along_z(h / 4, -1.0, rotations))
+
+
+def _sphere_candidates(model, rng, count: int = 32, rotations: int = 3):
+    i = np.arange(count) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * i / count), np.pi * (1 + 5**0.5) * i
+    directions = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth),
+                           np.cos(polar)], axis=-1)
+    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
+    directions = directions @ (q * np.sign(np.diag(r))).T
+    approaches = np.repeat(-directions, rotations, axis=0)
+    angles = (rng.uniform(0, np.pi) + np.arange(rotations) * (np.pi / rotations))
+    angles = np.tile(angles, count)
+    frames = np.array([frame(d) for d in approaches])
+    closings = np.cos(angles)[:, None] * frames[:, :, 0] + np.sin(angles)[:, None] * frames[:, :, 1]
+    return np.zeros_like(approaches), approaches, closings
+
+
+def _plane_candidates(model, rng):
+    if model.radius is None:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+    azimuths = rng.uniform(0, 2 * np.pi) + np.arange(8) * (2 * np.pi / 8)
+    inward = -_circle(azimuths)
+    return np.zeros_like(inward), inward, np.tile([0.0, 0.0, 1.0], (len(inward), 1))
+
+
+#: primitive name -> candidates (centres, approaches, closings) in its canonical frame.
+PROPOSERS = {"box": _box_candidates, "cylinder": _cylinder_candidates,
+             "cone": _cone_candidates, "sphere": _sphere_candidates,
+             "plane": _plane_candidates}
+
+
+def candidates(decomposition, *, key=0):
+    """All parts' candidates in the cloud's coordinates: centres (K, 3) of the approach
+    lines, rotations (K, 3, 3) with columns X, Y (closing), Z (approach), part indices
+    (K,)."""
+    seed = _checks.numpy_seed(key)
+    centres, rotations, parts = [], [], []
+    for index, part in enumerate(decomposition.parts):
+        propose = PROPOSERS.get(part.model.name)
+        if propose is None:
+            continue
+        rng = np.random.default_rng([seed, index])
+        c, z, y = propose(part.model, rng)
+        if not len(c):
+            continue
+        transform = np.asarray(part.model.transform(), np.float64)
+        r0, o = transform[:3, :3], transform[:3, 3]
+        z = z @ r0.T
+        y = y @ r0.T
+        y = y - np.sum(y * z, axis=1, keepdims=True) * z
+        y /= np.linalg.norm(y, axis=1, keepdims=True)
+        centres.append(c @ r0.T + o)
+        rotations.append(np.stack([np.cross(y, z), y, z], axis=-1))
+        parts.append(np.full(len(c), index))
+    if not centres:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, int)
+    return np.concatenate(centres), np.concatenate(rotations), np.concatenate(parts)
+
+
+# ----------------------------------------------------------------------------------------
+# The filter (JAX): one call for all candidates against all points.
+
+
+@functools.partial(jax.jit, static_argnames=("pad_points",))
+def _filter(points, valid, normals, centres, rotations, com, dims, *, pad_points: int):
+    """For candidates (C,) against points (N,): their grasp offsets, opening, contacts,
+    quality and whether each passes (module docstring). ``dims`` holds max_width,
+    finger_depth, finger_width / 2, finger_thickness, palm_depth, palm_width / 2,
+    clearance, the minimum antipodal quality, the minimum points in the closing region and
+    the object's size (for the centre-of-mass preference)."""
+    w0, fd, hw, t, pd, hp, cl, min_q, min_n, size = (dims[i] for i in range(10))
+    big = jnp.asarray(jnp.finfo(points.dtype).max / 4, points.dtype)
+    q = jnp.einsum("cnj,cjk->cnk", points[None] - centres[:, None], rotations)  # (C, N, 3)
+    x, y, z = q[..., 0], q[..., 1], q[..., 2]
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    v = valid[None]
+    # Open hand sliding along +Z: the first point in a finger's or the palm's footprint.
+    finger_fp = v & (ax <= hw + cl) & (ay >= w0 / 2 - cl) & (ay <= w0 / 2 + t + cl)
+    palm_fp = v & (ax <= hp + cl) & (ay <= w0 / 2 + t + cl)
+    s = jnp.minimum(jnp.min(jnp.where(finger_fp, z - cl, big), axis=1),
+                    jnp.min(jnp.where(palm_fp, z + fd - cl, big), axis=1))
+    s = jnp.minimum(s, 0.0)  # the fingertips stop at the approach line's centre
+    # The closing region between the open fingers.
+    band = v & (ax <= hw) & (z >= s[:, None] - fd) & (z <= s[:, None]) & (ay < w0 / 2)
+    count = jnp.sum(band, axis=1)
+    lo = jnp.min(jnp.where(band, y, big), axis=1)
+    hi = jnp.max(jnp.where(band, y, -big), axis=1)
+    has = count >= min_n
+    lo, hi = jnp.where(has, lo, 0.0), jnp.where(has, hi, 0.0)
+    mid, contact_width = 0.5 * (lo + hi), hi - lo
+    width = jnp.minimum(w0, contact_width + 2 * cl)
+    # The gripper at the final pose and opening must touch no point.
+    y1, z1 = y - mid[:, None], z - s[:, None]
+    m = 0.5 * cl  # the boxes grown by half the clearance
+    finger_hit = ((ax <= hw + m) & (jnp.abs(y1) >= width[:, None] / 2 - m)
+                  & (jnp.abs(y1) <= width[:, None] / 2 + t + m) & (z1 >= -fd - m) & (z1 <= m))
+    palm_hit = ((ax <= hp + m) & (jnp.abs(y1) <= w0 / 2 + t + m) & (z1 >= -fd - pd - m)
+                & (z1 <= -fd + m))
+    collides = jnp.any(v & (finger_hit | palm_hit), axis=1)
+    # Antipodal quality on the points nearest each pad.
+    closing = rotations[:, :, 1]
+    cos = jnp.abs(jnp.einsum("nj,cj->cn", normals, closing))
+    tol = jnp.maximum(2 * cl, 0.05 * contact_width)[:, None]
+
+    def pad(gap):
+        near = band & (gap <= tol)
+        _, idx = jax.lax.top_k(jnp.where(near, -gap, -big), pad_points)
+        w = jnp.take_along_axis(near, idx, axis=1).astype(points.dtype)
+        n = jnp.maximum(jnp.sum(w, axis=1), 1.0)
+        quality = jnp.sum(w * jnp.take_along_axis(cos, idx, axis=1), axis=1) / n
+        where = jnp.einsum("ck,ckj->cj", w, points[idx]) / n[:, None]
+        return quality, where
+
+    q_lo, c_lo = pad(y - lo[:, None])
+    q_hi, c_hi = pad(hi[:, None] - y)
+    antipodal = jnp.minimum(q_lo, q_hi)
+    line = c_hi - c_lo
+    alignment = jnp.abs(jnp.sum(line * closing, axis=1)) / jnp.maximum(
+        jnp.linalg.norm(line, axis=1), 1e-30)
+    origin = centres + jnp.einsum("cjk,ck->cj", rotations,
+                                  jnp.stack([jnp.zeros_like(s), mid, s], axis=1))
+    grip = 0.5 * (c_lo + c_hi)
+    centred = 1 - 0.5 * jnp.minimum(1.0, jnp.linalg.norm(grip - com, axis=1) / size)
+    score = antipodal * alignment * centred
+    ok = (has & ~collides & (antipodal >= min_q) & (contact_width > 0) & (contact_width < w0)
+          & jnp.isfinite(score) & (s > -big / 2))
+    return ok, origin, width, contact_width, jnp.stack([c_lo, c_hi], axis=1), antipodal, score
+
+
+def _bucket(n: int, step: int) -> int:
+    return max(step, -(-n // step) * step)
+
+
+def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None,
+           min_quality: float = 0.8, min_points: int = 4, normals=None) -> Grasps:
+    """Parallel-jaw grasps of a decomposed object (module docstring).
+
+    Parameters
+    ----------
+    decomposition : a ``jaxfit.Decomposition`` (its parts' primitives propose, its points
+        filter).
+    gripper : a ParallelJaw in the cloud's units.
+    key : int seed or JAX key for the sampled azimuths, rotations and sphere directions.
+    top : keep at most this many grasps, best first (default all that pass).
+    min_quality : least antipodal quality, the mean |cos| between the points' normals
+        and the closing axis at each pad (0.8: about 37 degrees).
+    min_points : fewest points between the fingers.
+    normals : (N, 3) the points' normals (signs ignored); default estimated (k = 16).
+    """
+    from .decomposition import Decomposition
+    from .normals import estimate_normals
+
+    started = time.perf_counter()
+    if not isinstance(decomposition, Decomposition):
+        raise TypeError(f"grasps needs a jaxfit.Decomposition, got {type(decomposition).__name__}")
+    if not isinstance(gripper, ParallelJaw):
+        raise TypeError(f"gripper must be a ParallelJaw, got {type(gripper).__name__}")
+    if top is not None:
+        top = _checks.positive(top, "top", integer=True)
+    if isinstance(min_quality, bool) or not isinstance(min_quality, int | float) or not (
+            0 <= min_quality <= 1):
+        raise ValueError(f"min_quality must be in [0, 1], got {min_quality!r}")
+    min_points = _checks.positive(min_points, "min_points", integer=True)
+    points = np.asarray(decomposition.points, np.float64)
+    if normals is None:
+        normals = estimate_normals(points, k=min(16, len(points)), orient=None)
+    normals = _checks.normals_for(normals, points)
+    centres, rotations, parts = candidates(decomposition, key=key)
+    count = len(centres)
+    models = [p.model for p in decomposition.parts]
+    com = mass_properties(models)[1] if models else points.mean(axis=0)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    shift, size = 0.5 * (lo + hi), max(float(np.linalg.norm(hi - lo)) / 2, 1e-300)
+
+    if count:
+        ok, origin, width, contact_width, contacts, antipodal, score = _run_filter(
+            points - shift, normals, centres - shift, rotations, com - shift, gripper,
+            min_quality, min_points, size)
+        keep = np.flatnonzero(ok)
+        keep = keep[np.argsort(-score[keep], kind="stable")][:top]
+    else:
+        keep = np.zeros(0, int)
+        origin, width, contact_width = np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+        contacts, antipodal, score = np.zeros((0, 2, 3)), np.zeros(0), np.zeros(0)
+    poses = np.tile(np.eye(4), (len(keep), 1, 1))
+    poses[:, :3, :3] = rotations[keep]
+    poses[:, :3, 3] = origin[keep] + shift
+    names = np.array([decomposition.parts[i].model.name for i in parts[keep]], dtype=object)
+    return Grasps(
+        poses=poses, widths=width[keep], contact_widths=contact_width[keep],
+        contacts=contacts[keep] + shift, parts=parts[keep], primitives=names,
+        scores=score[keep], antipodal=antipodal[keep],
+        gripper=gripper, num_candidates=count, seconds=time.perf_counter() - started)
+
+
+def _run_filter(points, normals, centres, rotations, com, gripper, min_quality, min_points,
+                size):
+    """``_filter`` on padded float32 copies (points to a power of two, candidates to a
+    multiple of ``CANDIDATE_BUCKET``), its outputs cut back to the C candidates, float64."""
+    count, dtype = len(centres), np.float32
+    c_pad = _bucket(count, CANDIDATE_BUCKET)
+    n_pad = max(MIN_POINTS_BUCKET, 1 << (len(points) - 1).bit_length())
+    pts, nrm = np.zeros((n_pad, 3), dtype), np.zeros((n_pad, 3), dtype)
+    pts[:len(points)], nrm[:len(points)] = points, normals
+    valid = np.arange(n_pad) < len(points)
+    cen = np.zeros((c_pad, 3), dtype)
+    cen[:count] = centres
+    rot = np.tile(np.eye(3, dtype=dtype), (c_pad, 1, 1))
+    rot[:count] = rotations
+    g = gripper
+    dims = np.array([g.max_width, g.finger_depth, g.finger_width / 2, g.finger_thickness,
+                     g.palm_depth, g.palm_width / 2, g.clearance, min_quality, min_points,
+                     size], dtype)
+    out = _filter(pts, valid, nrm, cen, rot, np.asarray(com, dtype), dims,
+                  pad_points=PAD_POINTS)
+    ok, *rest = (np.asarray(a)[:count] for a in out)
+    return (ok, *(a.astype(np.float64) for a in rest))

@@ -1,0 +1,172 @@
+"""Parallel-jaw grasps from primitives (jaxfit.grasping): the returned grasps are checked
+here independently of the planner's own filter (gripper boxes against the points, width,
+approach directions per primitive), plus determinism and input errors."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+import jaxfit
+from jaxfit.grasping import Grasps, ParallelJaw, grasps
+
+GRIPPER = ParallelJaw(max_width=0.085, finger_depth=0.04, finger_width=0.02)
+
+
+def _decomposed(mesh, key=0):
+    return jaxfit.decompose(mesh, num_points=2000, key=key)
+
+
+@pytest.fixture(scope="module")
+def objects():
+    """name -> Decomposition of a box 6 x 16 x 21 cm (its short side fits the jaw), a
+    cylinder r 3.3 cm h 10 cm along Z, a sphere r 3 cm."""
+    return {"box": _decomposed(trimesh.creation.box((0.06, 0.16, 0.21))),
+            "cylinder": _decomposed(trimesh.creation.cylinder(0.033, 0.1, sections=64)),
+            "sphere": _decomposed(trimesh.creation.icosphere(3, 0.03))}
+
+
+def colliding(grasp_set: Grasps, points) -> np.ndarray:
+    """(K,) whether the palm or a finger box of each grasp, at its opening, holds a point
+    (no margin): an oracle written apart from the planner's filter."""
+    out = np.zeros(len(grasp_set), bool)
+    for i, (pose, width) in enumerate(zip(grasp_set.poses, grasp_set.widths, strict=True)):
+        local = (points - pose[:3, 3]) @ pose[:3, :3]
+        for lo, hi in grasp_set.gripper.boxes(width):
+            out[i] |= bool(np.any(np.all((local >= lo) & (local <= hi), axis=1)))
+    return out
+
+
+def _assert_sound(g: Grasps, points):
+    assert len(g) > 0
+    assert not colliding(g, points).any()
+    assert np.all(g.widths <= g.gripper.max_width + 1e-12)
+    assert np.all(g.contact_widths <= g.widths + 1e-9)
+    assert np.all(np.diff(g.scores) <= 1e-12)  # best first
+    assert np.all((g.scores >= 0) & (g.scores <= 1))
+    rotations = g.poses[:, :3, :3]
+    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1),
+                               np.broadcast_to(np.eye(3), rotations.shape), atol=1e-6)
+    np.testing.assert_allclose(np.linalg.det(rotations), 1.0, atol=1e-6)
+    # The jaws close on the object: the points between the contacts span the contact width.
+    gap = np.abs(np.einsum("kj,kj->k", g.contacts[:, 1] - g.contacts[:, 0], g.closing))
+    assert np.all(gap <= g.contact_widths + 1e-6)
+
+
+@pytest.mark.parametrize("name", ["box", "cylinder", "sphere"])
+def test_grasps_do_not_collide_and_fit_the_jaw(objects, name):
+    d = objects[name]
+    g = grasps(d, GRIPPER, key=0)
+    _assert_sound(g, d.points)
+    assert g.num_candidates >= len(g)
+    assert set(g.primitives) <= {p.model.name for p in d.parts}
+
+
+def test_box_closes_across_the_side_that_fits(objects):
+    g = grasps(objects["box"], GRIPPER, key=0)
+    # Only the 6 cm side fits an 8.5 cm jaw: every grasp closes along X ...
+    np.testing.assert_allclose(np.abs(g.closing[:, 0]), 1.0, atol=0.05)
+    np.testing.assert_allclose(g.contact_widths, 0.06, atol=0.006)
+    # ... approaching along the normals of the four other faces, all of them used.
+    axes = np.argmax(np.abs(g.approach), axis=1)
+    signs = np.sign(g.approach[np.arange(len(g)), axes])
+    assert set(axes) == {1, 2}
+    assert {(a, s) for a, s in zip(axes, signs, strict=True)} == {(1, 1), (1, -1), (2, 1), (2, -1)}
+    assert np.all(np.abs(g.approach).max(axis=1) > 0.99)
+
+
+def test_cylinder_radial_and_from_both_ends(objects):
+    g = grasps(objects["cylinder"], GRIPPER, key=0)
+    along = np.abs(g.approach[:, 2])
+    radial, ends = along < 0.05, along > 0.99
+    assert radial.sum() >= 8 and ends.sum() >= 2
+    assert (g.approach[ends, 2] > 0).any() and (g.approach[ends, 2] < 0).any()
+    # From the ends the jaws close across the diameter; radially they close around it.
+    assert np.all(np.abs(g.closing[ends, 2]) < 0.05)
+    np.testing.assert_allclose(g.contact_widths[ends], 0.066, atol=0.006)
+    # Radial approaches point at the axis.
+    r = g.approach[radial, :2] / np.linalg.norm(g.approach[radial, :2], axis=1, keepdims=True)
+    origin = g.poses[radial, :2, 3]
+    assert np.all(np.abs(origin[:, 0] * r[:, 1] - origin[:, 1] * r[:, 0]) < 0.01)
+
+
+def test_sphere_grasped_from_all_around(objects):
+    d = objects["sphere"]
+    g = grasps(d, GRIPPER, key=0)
+    assert len(g) >= 40
+    # Directions spread over the sphere: every octant is approached.
+    octants = {tuple(s) for s in (g.approach > 0).astype(int)}
+    assert len(octants) == 8
+    # Each approach line passes near the centre and the jaws close across a diameter.
+    centre = d.parts[0].model.center
+    offset = (g.poses[:, :3, 3] - centre)
+    off_axis = offset - np.einsum("kj,kj->k", offset, g.approach)[:, None] * g.approach
+    assert np.all(np.linalg.norm(off_axis, axis=1) < 0.01)
+    assert np.median(g.antipodal) > 0.9
+
+
+def test_same_key_same_grasps(objects):
+    d = objects["sphere"]
+    a, b = grasps(d, GRIPPER, key=3), grasps(d, GRIPPER, key=3)
+    np.testing.assert_array_equal(a.poses, b.poses)
+    np.testing.assert_array_equal(a.scores, b.scores)
+    c = grasps(d, GRIPPER, key=4)
+    assert a.poses.shape != c.poses.shape or not np.array_equal(a.poses, c.poses)
+
+
+def test_top_pregrasp_and_json(objects):
+    g = grasps(objects["cylinder"], GRIPPER, key=0, top=5)
+    full = grasps(objects["cylinder"], GRIPPER, key=0)
+    assert len(g) == 5
+    np.testing.assert_array_equal(g.poses, full.poses[:5])
+    pre = g.pregrasp(0.1)
+    np.testing.assert_allclose(pre[:, :3, 3], g.poses[:, :3, 3] - 0.1 * g.approach)
+    record = json.loads(json.dumps(g.to_dict()))
+    assert len(record["grasps"]) == 5
+    assert record["gripper"]["max_width"] == GRIPPER.max_width
+    np.testing.assert_allclose(record["grasps"][0]["pose"], g.poses[0])
+
+
+def test_narrow_gripper_gets_nothing_it_cannot_reach(objects):
+    narrow = ParallelJaw(max_width=0.05, finger_depth=0.04, finger_width=0.02)
+    g = grasps(objects["box"], narrow, key=0)  # 6 cm is the box's narrowest side
+    assert len(g) == 0 and g.poses.shape == (0, 4, 4)
+    assert json.dumps(g.to_dict())
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"max_width": 0}, "max_width"),
+    ({"max_width": -1}, "max_width"),
+    ({"finger_depth": float("nan")}, "finger_depth"),
+    ({"finger_width": "2"}, "finger_width"),
+    ({"finger_thickness": 0}, "finger_thickness"),
+    ({"palm_depth": True}, "palm_depth"),
+    ({"palm_width": 0.01}, "palm_width"),
+    ({"clearance": -0.1}, "clearance"),
+    ({"clearance": 0.05}, "clearance"),
+])
+def test_bad_gripper_parameters(kwargs, match):
+    args = {"max_width": 0.085, "finger_depth": 0.04, "finger_width": 0.02} | kwargs
+    with pytest.raises(ValueError, match=match):
+        ParallelJaw(**args)
+
+
+def test_bad_arguments(objects):
+    with pytest.raises(TypeError, match="Decomposition"):
+        grasps(np.zeros((10, 3)), GRIPPER)
+    with pytest.raises(TypeError, match="ParallelJaw"):
+        grasps(objects["box"], {"max_width": 1})
+    with pytest.raises(ValueError, match="top"):
+        grasps(objects["box"], GRIPPER, top=0)
+    with pytest.raises(ValueError, match="min_quality"):
+        grasps(objects["box"], GRIPPER, min_quality=2)
+
+
+def test_real_meshes_do_not_collide(data_dir):
+    """YCB soup can and cracker box (metres), decomposed from 2,000 points."""
+    for name in ("005_tomato_soup_can", "003_cracker_box"):
+        mesh = trimesh.load(data_dir / "ycb" / f"{name}_textured.gltf", force="mesh")
+        d = _decomposed(mesh)
+        g = grasps(d, GRIPPER, key=0)
+        _assert_sound(g, d.points)
