@@ -11,6 +11,7 @@ from ._checks import FitError
 from .decomposition import Decomposition, Part, decompose
 from .detect import Detection, Scene, detect
 from .engine import Bounds, FitOptions, FitResult, Status, fit, fit_batch
+from .grasping import Grasps, ParallelJaw, grasps
 from .normals import estimate_normals
 from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
 
@@ -18,7 +19,7 @@ __all__ = [
     "fit", "fit_batch", "FitOptions", "Bounds", "FitResult", "Status", "FitError", "decompose",
     "Decomposition", "Part",
     "Model", "Plane", "Sphere", "Cylinder", "Cone", "Box", "compilation_cache_dir",
-    "estimate_normals", "detect", "Detection", "Scene",
+    "estimate_normals", "detect", "Detection", "Scene", "grasps", "Grasps", "ParallelJaw",
 ]
 
 #: Modules of the flat layout of jaxfit 0.1 -> where they live now. ``import

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 import jaxfit
-from jaxfit.grasping import Grasps, ParallelJaw, grasps
+from jaxfit import Grasps, ParallelJaw, grasps
 
 GRIPPER = ParallelJaw(max_width=0.085, finger_depth=0.04, finger_width=0.02)
 
@@ -21,10 +21,12 @@ def _decomposed(mesh, key=0):
 @pytest.fixture(scope="module")
 def objects():
     """name -> Decomposition of a box 6 x 16 x 21 cm (its short side fits the jaw), a
-    cylinder r 3.3 cm h 10 cm along Z, a sphere r 3 cm."""
+    cylinder r 3.3 cm h 10 cm along Z, a sphere r 3 cm, a cone r 2.5 cm h 6 cm with its
+    base at z = 0 and its apex up."""
     return {"box": _decomposed(trimesh.creation.box((0.06, 0.16, 0.21))),
             "cylinder": _decomposed(trimesh.creation.cylinder(0.033, 0.1, sections=64)),
-            "sphere": _decomposed(trimesh.creation.icosphere(3, 0.03))}
+            "sphere": _decomposed(trimesh.creation.icosphere(3, 0.03)),
+            "cone": _decomposed(trimesh.creation.cone(0.025, 0.06, sections=64))}
 
 
 def colliding(grasp_set: Grasps, points) -> np.ndarray:
@@ -54,7 +56,7 @@ def _assert_sound(g: Grasps, points):
     assert np.all(gap <= g.contact_widths + 1e-6)
 
 
-@pytest.mark.parametrize("name", ["box", "cylinder", "sphere"])
+@pytest.mark.parametrize("name", ["box", "cylinder", "sphere", "cone"])
 def test_grasps_do_not_collide_and_fit_the_jaw(objects, name):
     d = objects[name]
     g = grasps(d, GRIPPER, key=0)
@@ -104,6 +106,17 @@ def test_sphere_grasped_from_all_around(objects):
     off_axis = offset - np.einsum("kj,kj->k", offset, g.approach)[:, None] * g.approach
     assert np.all(np.linalg.norm(off_axis, axis=1) < 0.01)
     assert np.median(g.antipodal) > 0.9
+
+
+def test_cone_radial_and_from_base_and_apex(objects):
+    d = objects["cone"]
+    assert [p.kind for p in d.parts] == ["cone"]
+    g = grasps(d, GRIPPER, key=0)
+    along = g.approach[:, 2]
+    radial = np.abs(along) < 0.05
+    assert radial.sum() >= 8
+    assert (along > 0.99).any() and (along < -0.99).any()  # from below the base, from the apex
+    assert set(g.primitives) == {"cone"}
 
 
 def test_same_key_same_grasps(objects):
@@ -170,3 +183,26 @@ def test_real_meshes_do_not_collide(data_dir):
         d = _decomposed(mesh)
         g = grasps(d, GRIPPER, key=0)
         _assert_sound(g, d.points)
+
+
+BENCHMARK = {  # path, scale to metres (the gripper is sized in metres)
+    "ycb_soup_can": ("ycb/005_tomato_soup_can_textured.gltf", 1.0),
+    "ycb_cracker_box": ("ycb/003_cracker_box_textured.gltf", 1.0),
+    "graspit_mug": ("graspit/mug.iv", 1e-3),
+    "graspit_phone": ("graspit/phone.iv", 1e-3),
+    "pybullet_mug": ("misc/pybullet_data_objects_mug.obj", 1.0),
+    "inventor_duck": ("misc/inventor_mentor_duck.iv", 0.2),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(BENCHMARK))
+def test_benchmark_meshes_grasps_do_not_collide(data_dir, name):
+    """The six benchmark meshes at 4,000 points (as tests/test_sim.py decomposes them)."""
+    from jaxfit.decomposition.psda import load_source
+
+    path, scale = BENCHMARK[name]
+    d = jaxfit.decompose(load_source(data_dir / path, num_points=4000, seed=0), key=0)
+    gripper = ParallelJaw(max_width=0.085 / scale, finger_depth=0.04 / scale,
+                          finger_width=0.02 / scale)
+    _assert_sound(grasps(d, gripper, key=0), d.points)
