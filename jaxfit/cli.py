@@ -1,5 +1,5 @@
 """Command line: ``jaxfit fit CLOUD --shape S``, ``demo``, ``decompose`` (``--urdf``,
-``--mjcf``: simulator models) and ``evaluate``.
+``--mjcf``: simulator models), ``grasp`` (parallel-jaw grasps) and ``evaluate``.
 
 The choices of ``--shape``, ``--estimator``, ``--scenario`` and ``--object`` come from
 ``jaxfit.shapes.REGISTRY``, ``ESTIMATORS``, ``scenarios.SCENARIOS`` and
@@ -201,6 +201,23 @@ def _parser():
                            help="--urdf/--mjcf: multiplies every length (0.001 for a model "
                                 "in millimetres; default 1)")
     decompose.set_defaults(run=_cmd_decompose)
+    grasp = sub.add_parser("grasp", help="plan parallel-jaw grasps on an object's primitives")
+    grasp.add_argument("input", help="mesh, point file or Open Inventor .iv model")
+    grasp.add_argument("--out", required=True, help="folder for grasps.json and grasps.png")
+    grasp.add_argument("--gripper-width", type=float, default=None,
+                       help="widest opening in the model's units (default 0.085 / --scale)")
+    grasp.add_argument("--finger-depth", type=float, default=None,
+                       help="finger length along the approach (default 0.47 x the width)")
+    grasp.add_argument("--finger-width", type=float, default=None,
+                       help="finger pad width (default 0.235 x the width)")
+    grasp.add_argument("--scale", type=float, default=1.0,
+                       help="metres per model unit for the default gripper (0.001 for "
+                            "millimetres; default 1)")
+    grasp.add_argument("--top", type=int, default=10, help="grasps kept, best first (10)")
+    grasp.add_argument("--num-points", type=int, default=20000,
+                       help="points sampled from a mesh (20000)")
+    grasp.add_argument("--seed", type=int, default=0)
+    grasp.set_defaults(run=_cmd_grasp)
     evaluate = sub.add_parser(
         "evaluate", help="the thesis's RN/RNIM/SN/SNIM evaluation: CSV, tables and plots")
     evaluate.add_argument("--shape", nargs="+", default=list(evaluation.SHAPES),
@@ -243,6 +260,31 @@ def _cmd_decompose(args):
             print(f"wrote {write_urdf(models, out / f'{args.name}.urdf', **options)}")
         if args.mjcf:
             print(f"wrote {write_mjcf(models, out / f'{args.name}.xml', **options)}")
+
+
+def _cmd_grasp(args):
+    from .decomposition import decompose
+    from .grasping import ParallelJaw, grasps
+
+    if not (np.isfinite(args.scale) and args.scale > 0):
+        raise ValueError(f"--scale must be positive and finite, got {args.scale}")
+    width = 0.085 / args.scale if args.gripper_width is None else args.gripper_width
+    gripper = ParallelJaw(
+        max_width=width,
+        finger_depth=0.47 * width if args.finger_depth is None else args.finger_depth,
+        finger_width=0.235 * width if args.finger_width is None else args.finger_width)
+    if args.top < 1:
+        raise ValueError(f"--top must be a positive integer, got {args.top}")
+    result = decompose(args.input, num_points=args.num_points, key=args.seed, progress=True)
+    print(result.summary())
+    found = grasps(result, gripper, key=args.seed, top=args.top)
+    print(f"{len(found)} grasps kept of {found.num_candidates} candidates in "
+          f"{found.seconds:.2f} s")
+    for i in range(len(found)):
+        print(f"  grasp {i}: part {found.parts[i]} ({found.primitives[i]}), score "
+              f"{found.scores[i]:.3f}, width {found.widths[i]:.4g}")
+    folder = found.save(args.out, result, top=args.top)
+    print(f"wrote {folder / 'grasps.json'}, {folder / 'grasps.png'}")
 
 
 def _demo_decomposition(args):

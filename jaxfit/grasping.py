@@ -37,7 +37,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -187,6 +189,21 @@ class Grasps:
                         "primitive": str(self.primitives[i]), "score": float(self.scores[i]),
                         "antipodal": float(self.antipodal[i])} for i in range(len(self))],
         }
+
+
+    def save(self, directory, decomposition, *, top: int = 10) -> Path:
+        """Write grasps.json (``to_dict``) and grasps.png (the first ``top`` grasps drawn on
+        ``decomposition``'s primitives) into ``directory``, both renamed into place only
+        when both are written (``io.atomic``)."""
+        from .io.atomic import replacing
+        from .io.grasp_preview import render
+
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        with replacing(out / "grasps.json") as record, replacing(out / "grasps.png") as png:
+            record.write_text(json.dumps(self.to_dict(), indent=1))
+            render(decomposition, self, png, top=top)
+        return out
 
 
 # ----------------------------------------------------------------------------------------

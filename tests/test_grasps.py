@@ -206,3 +206,31 @@ def test_benchmark_meshes_grasps_do_not_collide(data_dir, name):
     gripper = ParallelJaw(max_width=0.085 / scale, finger_depth=0.04 / scale,
                           finger_width=0.02 / scale)
     _assert_sound(grasps(d, gripper, key=0), d.points)
+
+
+def test_save_writes_json_and_preview(objects, tmp_path):
+    d = objects["cylinder"]
+    g = grasps(d, GRIPPER, key=0, top=6)
+    folder = g.save(tmp_path / "out", d, top=4)
+    record = json.loads((folder / "grasps.json").read_text())
+    assert len(record["grasps"]) == 6
+    assert (folder / "grasps.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in folder.iterdir()) == ["grasps.json", "grasps.png"]
+
+
+def test_cli_grasp(tmp_path, capsys):
+    from jaxfit.cli import main
+
+    points = trimesh.creation.icosphere(3, 0.03).sample(2000, seed=0)
+    cloud = tmp_path / "ball.npy"
+    np.save(cloud, points)
+    out = tmp_path / "grasps"
+    assert main(["grasp", str(cloud), "--out", str(out), "--top", "3"]) == 0
+    record = json.loads((out / "grasps.json").read_text())
+    assert 1 <= len(record["grasps"]) <= 3
+    assert record["gripper"]["max_width"] == pytest.approx(0.085)
+    assert "grasps kept" in capsys.readouterr().out
+    # A bad gripper is refused before any work, with a message naming it.
+    assert main(["grasp", str(cloud), "--out", str(tmp_path / "bad"),
+                 "--gripper-width", "-1"]) == 2
+    assert "max_width" in capsys.readouterr().err
