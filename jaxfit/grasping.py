@@ -51,10 +51,8 @@ from .shapes._geometry import frame
 
 #: Candidates are padded to a multiple of this and points to a power of two (at least
 #: ``MIN_POINTS_BUCKET``), so the filter compiles once per bucket, not per object.
-CANDIDATE_BUCKET = 256
+CANDIDATE_BUCKET = 64
 MIN_POINTS_BUCKET = 1024
-#: Points nearest each finger pad whose normals measure the antipodal quality.
-PAD_POINTS = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -334,27 +332,31 @@ def candidates(decomposition, *, key=0):
 # The filter (JAX): one call for all candidates against all points.
 
 
-@functools.partial(jax.jit, static_argnames=("pad_points",))
-def _filter(points, valid, normals, centres, rotations, com, dims, *, pad_points: int):
-    """For candidates (C,) against points (N,): their grasp offsets, opening, contacts,
-    quality and whether each passes (module docstring). ``dims`` holds max_width,
-    finger_depth, finger_width / 2, finger_thickness, palm_depth, palm_width / 2,
-    clearance, the minimum antipodal quality, the minimum points in the closing region and
-    the object's size (for the centre-of-mass preference)."""
+@jax.jit
+def _filter(points, valid, normals, centres, rotations, com, dims):
+    """For candidates (C,) against points (N,): whether each passes, its origin, opening,
+    contact width, pad contacts, antipodal quality and score (module docstring). ``dims``
+    holds max_width, finger_depth, finger_width / 2, finger_thickness, palm_depth,
+    palm_width / 2, clearance, the minimum antipodal quality, the minimum points in the
+    closing region and the object's size (for the centre-of-mass preference)."""
     w0, fd, hw, t, pd, hp, cl, min_q, min_n, size = (dims[i] for i in range(10))
     big = jnp.asarray(jnp.finfo(points.dtype).max / 4, points.dtype)
-    q = jnp.einsum("cnj,cjk->cnk", points[None] - centres[:, None], rotations)  # (C, N, 3)
-    x, y, z = q[..., 0], q[..., 1], q[..., 2]
+    # Points in each candidate's frame: (p - c) R, as one (N, 3) x (C, 3, 3) product.
+    shift = jnp.einsum("cj,cjk->ck", centres, rotations)
+    x, y, z = (jnp.einsum("nj,cj->cn", points, rotations[:, :, k]) - shift[:, k, None]
+               for k in range(3))
     ax, ay = jnp.abs(x), jnp.abs(y)
     v = valid[None]
-    # Open hand sliding along +Z: the first point in a finger's or the palm's footprint.
-    finger_fp = v & (ax <= hw + cl) & (ay >= w0 / 2 - cl) & (ay <= w0 / 2 + t + cl)
-    palm_fp = v & (ax <= hp + cl) & (ay <= w0 / 2 + t + cl)
-    s = jnp.minimum(jnp.min(jnp.where(finger_fp, z - cl, big), axis=1),
-                    jnp.min(jnp.where(palm_fp, z + fd - cl, big), axis=1))
-    s = jnp.minimum(s, 0.0)  # the fingertips stop at the approach line's centre
+    # Open hand sliding along +Z until a finger (fingertip at z - cl) or the palm (its
+    # face fd behind the fingertips) meets a point of its footprint; the finger footprint
+    # lies inside the palm's, where the finger stops first.
+    in_palm = v & (ax <= hp + cl) & (ay <= w0 / 2 + t + cl)
+    in_finger = (ax <= hw + cl) & (ay >= w0 / 2 - cl)
+    stop = jnp.where(in_palm, z - cl + jnp.where(in_finger, 0.0, fd), big)
+    s = jnp.minimum(jnp.min(stop, axis=1), 0.0)  # fingertips stop at the line's centre
     # The closing region between the open fingers.
-    band = v & (ax <= hw) & (z >= s[:, None] - fd) & (z <= s[:, None]) & (ay < w0 / 2)
+    z0 = z - s[:, None]
+    band = v & (ax <= hw) & (z0 >= -fd) & (z0 <= 0) & (ay < w0 / 2)
     count = jnp.sum(band, axis=1)
     lo = jnp.min(jnp.where(band, y, big), axis=1)
     hi = jnp.max(jnp.where(band, y, -big), axis=1)
@@ -362,30 +364,28 @@ def _filter(points, valid, normals, centres, rotations, com, dims, *, pad_points
     lo, hi = jnp.where(has, lo, 0.0), jnp.where(has, hi, 0.0)
     mid, contact_width = 0.5 * (lo + hi), hi - lo
     width = jnp.minimum(w0, contact_width + 2 * cl)
-    # The gripper at the final pose and opening must touch no point.
-    y1, z1 = y - mid[:, None], z - s[:, None]
-    m = 0.5 * cl  # the boxes grown by half the clearance
-    finger_hit = ((ax <= hw + m) & (jnp.abs(y1) >= width[:, None] / 2 - m)
-                  & (jnp.abs(y1) <= width[:, None] / 2 + t + m) & (z1 >= -fd - m) & (z1 <= m))
-    palm_hit = ((ax <= hp + m) & (jnp.abs(y1) <= w0 / 2 + t + m) & (z1 >= -fd - pd - m)
-                & (z1 <= -fd + m))
+    # The gripper at the final pose and opening (boxes grown by half the clearance) must
+    # touch no point.
+    m = 0.5 * cl
+    ay1 = jnp.abs(y - mid[:, None])
+    finger_hit = ((ax <= hw + m) & (ay1 >= width[:, None] / 2 - m)
+                  & (ay1 <= width[:, None] / 2 + t + m) & (z0 >= -fd - m) & (z0 <= m))
+    palm_hit = ((ax <= hp + m) & (ay1 <= w0 / 2 + t + m) & (z0 >= -fd - pd - m)
+                & (z0 <= -fd + m))
     collides = jnp.any(v & (finger_hit | palm_hit), axis=1)
-    # Antipodal quality on the points nearest each pad.
+    # Antipodal quality: mean |normal . closing axis| over the region's points within
+    # ``tol`` of each pad.
     closing = rotations[:, :, 1]
     cos = jnp.abs(jnp.einsum("nj,cj->cn", normals, closing))
     tol = jnp.maximum(2 * cl, 0.05 * contact_width)[:, None]
 
-    def pad(gap):
-        near = band & (gap <= tol)
-        _, idx = jax.lax.top_k(jnp.where(near, -gap, -big), pad_points)
-        w = jnp.take_along_axis(near, idx, axis=1).astype(points.dtype)
+    def pad(near):
+        w = near.astype(points.dtype)
         n = jnp.maximum(jnp.sum(w, axis=1), 1.0)
-        quality = jnp.sum(w * jnp.take_along_axis(cos, idx, axis=1), axis=1) / n
-        where = jnp.einsum("ck,ckj->cj", w, points[idx]) / n[:, None]
-        return quality, where
+        return jnp.sum(w * cos, axis=1) / n, (w @ points) / n[:, None]
 
-    q_lo, c_lo = pad(y - lo[:, None])
-    q_hi, c_hi = pad(hi[:, None] - y)
+    q_lo, c_lo = pad(band & (y - lo[:, None] <= tol))
+    q_hi, c_hi = pad(band & (hi[:, None] - y <= tol))
     antipodal = jnp.minimum(q_lo, q_hi)
     line = c_hi - c_lo
     alignment = jnp.abs(jnp.sum(line * closing, axis=1)) / jnp.maximum(
@@ -484,7 +484,6 @@ def _run_filter(points, normals, centres, rotations, com, gripper, min_quality, 
     dims = np.array([g.max_width, g.finger_depth, g.finger_width / 2, g.finger_thickness,
                      g.palm_depth, g.palm_width / 2, g.clearance, min_quality, min_points,
                      size], dtype)
-    out = _filter(pts, valid, nrm, cen, rot, np.asarray(com, dtype), dims,
-                  pad_points=PAD_POINTS)
+    out = _filter(pts, valid, nrm, cen, rot, np.asarray(com, dtype), dims)
     ok, *rest = (np.asarray(a)[:count] for a in out)
     return (ok, *(a.astype(np.float64) for a in rest))
