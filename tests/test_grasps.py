@@ -189,6 +189,7 @@ def test_bad_arguments(objects):
         grasps(objects["box"], GRIPPER, min_quality=2)
 
 
+@pytest.mark.slow  # ~40 s with an empty compilation cache (the decomposition's fits)
 def test_decomposed_soup_can(data_dir):
     """The YCB soup can (metres) decomposed from 2,000 points: grasps on its parts,
     around the can and across it from the ends."""
@@ -233,18 +234,28 @@ def test_save_writes_json_and_preview(objects, tmp_path):
     assert sorted(p.name for p in folder.iterdir()) == ["grasps.json", "grasps.png"]
 
 
-def test_cli_grasp(tmp_path, capsys):
+def test_cli_grasp(tmp_path, capsys, monkeypatch, objects):
+    """The command's plumbing, with the decomposition stubbed (decomposing compiles the
+    fits: ~40 s with an empty cache; the slow tests decompose)."""
+    import jaxfit.decomposition
     from jaxfit.cli import main
 
-    points = trimesh.creation.icosphere(3, 0.03).sample(2000, seed=0)
+    seen = {}
+
+    def fake_decompose(source, **options):
+        seen.update(options, source=source)
+        return objects["sphere"]
+
+    monkeypatch.setattr(jaxfit.decomposition, "decompose", fake_decompose)
     cloud = tmp_path / "ball.npy"
-    np.save(cloud, points)
+    np.save(cloud, objects["sphere"].points)
     out = tmp_path / "grasps"
     assert main(["grasp", str(cloud), "--out", str(out), "--top", "3"]) == 0
     record = json.loads((out / "grasps.json").read_text())
     assert 1 <= len(record["grasps"]) <= 3
     assert record["gripper"]["max_width"] == pytest.approx(0.085)
     assert "grasps kept" in capsys.readouterr().out
+    assert seen["source"] == str(cloud) and seen["key"] == 0
     # A bad gripper is refused before any work, with a message naming it.
     assert main(["grasp", str(cloud), "--out", str(tmp_path / "bad"),
                  "--gripper-width", "-1"]) == 2
