@@ -38,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import numbers
 import time
 from pathlib import Path
 
@@ -430,7 +431,7 @@ def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None
         raise TypeError(f"gripper must be a ParallelJaw, got {type(gripper).__name__}")
     if top is not None:
         top = _checks.positive(top, "top", integer=True)
-    if isinstance(min_quality, bool) or not isinstance(min_quality, int | float) or not (
+    if isinstance(min_quality, bool) or not isinstance(min_quality, numbers.Real) or not (
             0 <= min_quality <= 1):
         raise ValueError(f"min_quality must be in [0, 1], got {min_quality!r}")
     min_points = _checks.positive(min_points, "min_points", integer=True)

@@ -4,6 +4,7 @@ approach directions per primitive), plus determinism and input errors."""
 
 import json
 
+import jax
 import numpy as np
 import pytest
 import trimesh
@@ -137,6 +138,8 @@ def test_same_key_same_grasps(objects):
     a, b = grasps(d, GRIPPER, key=3), grasps(d, GRIPPER, key=3)
     np.testing.assert_array_equal(a.poses, b.poses)
     np.testing.assert_array_equal(a.scores, b.scores)
+    k1, k2 = grasps(d, GRIPPER, key=jax.random.key(7)), grasps(d, GRIPPER, key=jax.random.key(7))
+    np.testing.assert_array_equal(k1.poses, k2.poses)
     c = grasps(d, GRIPPER, key=4)
     assert a.poses.shape != c.poses.shape or not np.array_equal(a.poses, c.poses)
 

@@ -1,4 +1,4 @@
-"""A headless picture of grasps: the object's primitives with the top grasps drawn as
+"""A headless picture of grasps: the object's points and primitives with the top grasps drawn as
 parallel-jaw outlines (palm bar, two fingers at the opening, approach line from the
 pre-grasp standoff), best in the darkest colour."""
 
@@ -26,7 +26,8 @@ def gripper_lines(pose, width, gripper, standoff=None) -> np.ndarray:
 
 
 def render(decomposition, grasps, path, *, top: int = 10, size=(6.5, 6), dpi=110):
-    """Write a PNG of the decomposition's primitives and its first ``top`` grasps."""
+    """Write a PNG of the decomposition's points (grey) and primitives and its first
+    ``top`` grasps."""
     plt = pyplot()
     from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
@@ -37,6 +38,8 @@ def render(decomposition, grasps, path, *, top: int = 10, size=(6.5, 6), dpi=110
     half = 0.55 * max((hi - lo).max(), 2.5 * grasps.gripper.finger_depth)
     fig = plt.figure(figsize=size)
     ax = fig.add_subplot(1, 1, 1, projection="3d")
+    step = max(1, len(points) // 4000)
+    ax.scatter(*points[::step].T, s=0.6, c="0.55", alpha=0.5, depthshade=False)
     for part in decomposition.parts:
         mesh = part.model.to_mesh()
         ax.add_collection3d(Poly3DCollection(
