@@ -68,6 +68,13 @@ def _assert_sound(g: Grasps, points):
     # The jaws close on the object: the points between the contacts span the contact width.
     gap = np.abs(np.einsum("kj,kj->k", g.contacts[:, 1] - g.contacts[:, 0], g.closing))
     assert np.all(gap <= g.contact_widths + 1e-6)
+    # Both contacts lie between the open fingers, within the finger depth, one per pad.
+    local = np.einsum("kcj,kjl->kcl", g.contacts - g.poses[:, None, :3, 3], rotations)
+    tol = 1e-4 * g.gripper.max_width
+    assert np.all(np.abs(local[..., 0]) <= g.gripper.finger_width / 2 + tol)
+    assert np.all(np.abs(local[..., 1]) <= g.widths[:, None] / 2 + tol)
+    assert np.all((local[..., 2] >= -g.gripper.finger_depth - tol) & (local[..., 2] <= tol))
+    assert np.all(local[:, 0, 1] < local[:, 1, 1])
 
 
 @pytest.mark.parametrize("name", ["box", "cylinder", "sphere", "cone"])
