@@ -43,7 +43,7 @@ from .. import _checks
 from ..engine import fit_batch
 from ..shapes import Box, Model
 from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
-from .hull import hull_depth
+from .hull import shallow
 
 #: The primitives tried on every part by default: the thesis's four.
 SHAPES = ("sphere", "cylinder", "cone", "box")
@@ -394,14 +394,14 @@ def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed
 
 def _outside(cloud, threshold):
     """A hollow part's outside: its points within ``HOLLOW_DEPTH`` thresholds of its
-    convex hull, when at least ``HOLLOW`` of them lie deeper; otherwise all of them."""
-    from scipy.spatial import ConvexHull, QhullError
+    convex hull (``hull.shallow``), when at least ``HOLLOW`` of them lie deeper;
+    otherwise all of them."""
+    from scipy.spatial import QhullError
 
     try:
-        equations = ConvexHull(cloud).equations
+        outside = shallow(cloud, HOLLOW_DEPTH * threshold)
     except (QhullError, ValueError):  # flat or tiny parts have no inside
         return cloud
-    outside = hull_depth(cloud, equations) <= HOLLOW_DEPTH * threshold
     return cloud[outside] if 1.0 - outside.mean() >= HOLLOW else cloud
 
 
