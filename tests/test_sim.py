@@ -1,10 +1,11 @@
-"""Simulator models: ``jaxfit.io.sim`` (URDF, MJCF) and
-the CLI's ``--urdf --mjcf``, validated in MuJoCo (the ``sim`` extra):
+"""Simulator models: ``jaxfit.io.sim`` (URDF, MJCF), ``Decomposition.to_urdf`` /
+``to_mjcf`` and the CLI's ``--urdf --mjcf``, validated in MuJoCo (the ``sim`` extra):
 the models load, have the primitives' mass, inertia and bounds, and the object dropped
 onto a floor comes to rest. The benchmark meshes' decompositions are ``slow`` (each
 compiles kernels with a cold cache); the rest is fast."""
 
 import functools
+import json
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+import jaxfit
 from jaxfit.decomposition import decompose, load_source
 from jaxfit.io import sim
 from jaxfit.shapes import Box, Cone, Cylinder, Plane, Sphere, mass_properties
@@ -287,11 +289,28 @@ def sphere_decomposition():
                      shapes=("sphere",), key=0)
 
 
+def test_decomposition_dict_has_poses_and_totals():
+    result = sphere_decomposition()
+    data = json.loads(json.dumps(result.to_dict()))
+    part, = data["parts"]
+    model = result.parts[0].model
+    np.testing.assert_allclose(part["transform"], model.transform())
+    assert part["volume"] == pytest.approx(model.volume())
+    np.testing.assert_allclose(part["centroid"], model.centroid())
+    assert {"kind", "winner", "model", "mean_distance", "num_points", "box",
+            "candidates"} <= set(part)
+    assert data["totals"]["volume"] == pytest.approx(4 / 3 * np.pi * 0.05**3, rel=0.03)
+    np.testing.assert_allclose(data["totals"]["inertia_per_density"], model.inertia(1.0),
+                               atol=1e-12 * float(model.inertia(1.0).max()))
+    mass, _, _ = result.mass_properties(1000.0)
+    assert mass == pytest.approx(1000.0 * model.volume())
+
+
 @needs_mujoco
-def test_a_decomposition_as_mjcf_rests_and_as_urdf_loads(tmp_path):
-    models = [part.model for part in sphere_decomposition().parts]
-    assert_rests(sim.write_mjcf(models, tmp_path / "ball.xml", name="ball"))
-    model = mujoco.MjModel.from_xml_path(str(sim.write_urdf(models, tmp_path / "ball.urdf")))
+def test_decomposition_to_mjcf_rests_and_to_urdf_loads(tmp_path):
+    result = sphere_decomposition()
+    assert_rests(result.to_mjcf(tmp_path / "ball.xml", name="ball"))
+    model = mujoco.MjModel.from_xml_path(str(result.to_urdf(tmp_path / "ball.urdf")))
     assert model.ngeom == 1 and model.geom_type[0] == mujoco.mjtGeom.mjGEOM_SPHERE
 
 
@@ -348,8 +367,7 @@ def benchmark_decomposition(data_dir, name):
 def test_benchmark_mesh_models_load_match_and_rest(data_dir, tmp_path, name):
     _, scale, up = BENCHMARK[name]
     result = benchmark_decomposition(data_dir, name)
-    models = [part.model for part in result.parts]
-    mjcf = sim.write_mjcf(models, tmp_path / f"{name}.xml", name=name, scale=scale)
+    mjcf = result.to_mjcf(tmp_path / f"{name}.xml", name=name, scale=scale)
     model, data = loaded(mjcf)
     geoms = object_geoms(model)
     assert len(geoms) == len(result.parts)
@@ -358,10 +376,15 @@ def test_benchmark_mesh_models_load_match_and_rest(data_dir, tmp_path, name):
     tol = 2e-3 * scale * np.linalg.norm(want_hi - want_lo)
     np.testing.assert_allclose(lo, scale * want_lo, atol=tol)
     np.testing.assert_allclose(hi, scale * want_hi, atol=tol)
-    mass, _, _ = mass_properties(models, 1000.0)
+    mass, _, _ = result.mass_properties(1000.0)
     assert model.body_mass[model.geom_bodyid[geoms[0]]] == pytest.approx(mass * scale**3)
     assert_rests(mjcf, up)
-    urdf = mujoco.MjModel.from_xml_path(str(sim.write_urdf(models, tmp_path / f"{name}.urdf",
-                                                           name=name, scale=scale)))
+    urdf = mujoco.MjModel.from_xml_path(str(result.to_urdf(tmp_path / f"{name}.urdf",
+                                                            name=name, scale=scale)))
     assert urdf.ngeom == len(result.parts)
     np.testing.assert_array_equal(urdf.geom_type, model.geom_type[geoms])
+
+
+def test_the_package_exports_the_writers():
+    assert jaxfit.Decomposition.to_urdf and jaxfit.Decomposition.to_mjcf
+    assert callable(sim.write_urdf) and callable(sim.write_mjcf)

@@ -41,7 +41,7 @@ import numpy as np
 
 from .. import _checks
 from ..engine import fit_batch
-from ..shapes import Box, Model
+from ..shapes import Box, Model, mass_properties
 from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import shallow
 
@@ -138,8 +138,9 @@ class Decomposition:
         return scene
 
     def to_dict(self) -> dict:
-        """JSON-ready: per part its primitive, score, size and every candidate; the
-        hierarchy; the settings."""
+        """JSON-ready: per part its primitive, score, size, every candidate, and its pose
+        (``transform``, 4x4 rows), volume and centroid; the totals (``mass_properties`` at
+        density 1: the volume, centroid and inertia per unit density); the hierarchy."""
         parts = []
         for part in self.parts:
             parts.append({
@@ -152,9 +153,41 @@ class Decomposition:
                 "candidates": {name: {"model": c.model.to_dict(), "mean_distance": c.mean_distance,
                                       "overshoot": c.overshoot}
                                for name, c in part.candidates.items()},
+                "transform": part.model.transform().tolist(),
+                "volume": part.model.volume(),
+                "centroid": part.model.centroid().tolist(),
             })
+        volume, centroid, inertia = self.mass_properties(1.0)
+        totals = {"volume": volume, "centroid": centroid.tolist(),
+                  "inertia_per_density": inertia.tolist()}
         return {"num_points": int(len(self.points)), "seconds": self.seconds, "parts": parts,
-                "hierarchy": self.tree.to_dict()}
+                "totals": totals, "hierarchy": self.tree.to_dict()}
+
+    def mass_properties(self, density: float = 1.0):
+        """(mass (), centre of mass (3,), inertia tensor (3, 3) about it) of the parts'
+        primitives as one rigid body at ``density`` (``shapes.mass_properties``: parts
+        that overlap count once each; planes weigh nothing)."""
+        return mass_properties([part.model for part in self.parts], density)
+
+    def to_urdf(self, path, *, name: str = "object", density: float = 1000.0, mesh_dir=None,
+                **options) -> Path:
+        """Write the parts as a URDF robot of one link, one collision geometry per part
+        (``jaxfit.io.sim.write_urdf``; ``options``: ``scale``, ``visual``,
+        ``visual_mesh``). Returns ``path``."""
+        from ..io.sim import write_urdf
+
+        return write_urdf([p.model for p in self.parts], path, name=name, density=density,
+                          mesh_dir=mesh_dir, **options)
+
+    def to_mjcf(self, path, *, name: str = "object", density: float = 1000.0, mesh_dir=None,
+                **options) -> Path:
+        """Write the parts as a MuJoCo model of one free body, one geom per part
+        (``jaxfit.io.sim.write_mjcf``; ``options``: ``scale``, ``free``,
+        ``visual_mesh``). Returns ``path``."""
+        from ..io.sim import write_mjcf
+
+        return write_mjcf([p.model for p in self.parts], path, name=name, density=density,
+                          mesh_dir=mesh_dir, **options)
 
     def save(self, directory) -> Path:
         """Write parts.json, decomposition.glb and preview.png into ``directory``: all
