@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .preview import _shaded, pyplot, view_angles
+from .preview import _shaded, framed, pyplot, view_angles
 
 
 def gripper_lines(pose, width, gripper, standoff=None) -> np.ndarray:
@@ -52,12 +52,7 @@ def render(decomposition, grasps, path, *, top: int = 10, size=(6.5, 6), dpi=110
         ax.add_collection3d(Line3DCollection(lines, colors=[colours[i]], linewidths=2.0))
     ax.set_title(f"top {shown} of {len(grasps)} grasps ({grasps.num_candidates} candidates)",
                  fontsize=10)
-    ax.view_init(elev=elevation, azim=azimuth)
-    ax.set_xlim(centre[0] - half, centre[0] + half)
-    ax.set_ylim(centre[1] - half, centre[1] + half)
-    ax.set_zlim(centre[2] - half, centre[2] + half)
-    ax.set_box_aspect((1, 1, 1))
-    ax.set_axis_off()
+    framed(ax, centre, half, elevation, azimuth)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.93)
     fig.savefig(path, dpi=dpi)
     plt.close(fig)

@@ -70,12 +70,18 @@ def render(decomposition, path, *, size=(11, 5.5), dpi=110):
     right.legend(handles=[Patch(color=np.asarray(REGISTRY[k].colour[:3]) / 255, label=k)
                           for k in dict.fromkeys(kinds)], loc="upper right", fontsize=8)
     for ax in (left, right):
-        ax.view_init(elev=elevation, azim=azimuth)
-        ax.set_xlim(centre[0] - half, centre[0] + half)
-        ax.set_ylim(centre[1] - half, centre[1] + half)
-        ax.set_zlim(centre[2] - half, centre[2] + half)
-        ax.set_box_aspect((1, 1, 1))
-        ax.set_axis_off()
+        framed(ax, centre, half, elevation, azimuth)
     fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92, wspace=0.0)
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
+
+
+def framed(ax, centre, half: float, elevation: float, azimuth: float) -> None:
+    """Point a 3-D axes at the cube of half-side ``half`` about ``centre`` (3,), seen from
+    ``elevation`` and ``azimuth`` (degrees), equal scales and no axes drawn."""
+    ax.view_init(elev=elevation, azim=azimuth)
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_zlim(centre[2] - half, centre[2] + half)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_axis_off()
