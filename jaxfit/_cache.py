@@ -157,6 +157,26 @@ def compilation_cache_dir() -> str | None:
     return jax.config.jax_compilation_cache_dir
 
 
+def compile_notice() -> str | None:
+    """A one-line notice for a process that will compile jaxfit's kernels from scratch
+    (no stored program of this jaxfit source in the cache folder, or the cache off), or
+    None when they were stored by an earlier run."""
+    if _enabled_dir is None:
+        if compilation_cache_dir() is None:
+            return ("jaxfit: compiling kernels (the compilation cache is off: every run "
+                    "compiles, a few seconds per primitive)")
+        return None  # the user's own JAX cache folder: its state is theirs
+    folder = Path(_enabled_dir) / EXPORTED / _source_digest()[:16]
+    try:
+        stored = any(folder.glob("*.jaxexport"))
+    except OSError:
+        stored = False
+    if stored:
+        return None
+    return (f"jaxfit: compiling kernels (first run only: they are kept in {_enabled_dir}, "
+            "a few seconds per primitive)")
+
+
 #: Sub-folder of jaxfit's cache folder that holds the ``Stored`` kernels' programs, in one
 #: folder per jaxfit source (a program traced from other code is never read).
 EXPORTED = "exported"

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _cache
 from .evaluation import evaluate as evaluation
 from .evaluation import scenarios
 from .evaluation.synthetic import COMPOSITES
@@ -316,6 +317,8 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         _check_outputs(args)
+        if (notice := _cache.compile_notice()) is not None:
+            print(notice, file=sys.stderr, flush=True)
         args.run(args)
     except BrokenPipeError:  # `jaxfit ... | head`: the reader left; say nothing more
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

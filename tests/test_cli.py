@@ -1,9 +1,11 @@
 """The command line: demo, fit on files, JSON and mesh output, errors as messages."""
 
 import json
+import os
 import re
 
 import numpy as np
+import pytest
 import trimesh
 
 from jaxfit.cli import main
@@ -115,3 +117,24 @@ def test_an_unexpected_error_is_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err.startswith("jaxfit: error: IndexError: face index 7") and "Traceback" not in err
 
+
+
+@pytest.mark.slow
+def test_a_first_run_says_it_compiles_and_a_second_does_not(tmp_path):
+    """A fresh machine's first CLI run compiles for seconds: it says so once, on stderr,
+    and a later run with the kernels stored stays quiet."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, "JAXFIT_CACHE_DIR": str(tmp_path / "cache")}
+    code = ("import sys; from jaxfit import cli; "
+            "sys.exit(cli.main(['demo', '--shape', 'sphere', '--out', sys.argv[1]]))")
+    runs = [subprocess.run([sys.executable, "-c", code, str(tmp_path / f"out{i}")], env=env,
+                           capture_output=True, text=True, timeout=300) for i in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr
+    assert runs[0].stderr.count("jaxfit: compiling kernels (first run only") == 1
+    assert "compiling kernels" not in runs[1].stderr
+    off = subprocess.run([sys.executable, "-c", code, str(tmp_path / "out2")],
+                         env={**env, "JAXFIT_CACHE": "0"}, capture_output=True, text=True,
+                         timeout=300)
+    assert "the compilation cache is off" in off.stderr
