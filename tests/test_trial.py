@@ -122,3 +122,20 @@ def test_bad_input(planned):
         lift_trial(mesh, np.eye(3), 0.05, JAW)
     with pytest.raises(ValueError, match="volume"):
         lift_trial(None, g.poses[0], 0.05, JAW, pieces=[np.zeros((4, 3))])
+
+
+def test_connected_bodies_are_the_pieces():
+    """Without pieces, each connected body of the mesh is one convex piece: two boxes
+    apart give two geoms (their joint hull would fill the gap between them)."""
+    from jaxfit.io.trial import _pieces
+
+    boxes = [trimesh.creation.box([0.02, 0.02, 0.02]).apply_translation([x, 0, 0])
+             for x in (-0.03, 0.03)]
+    mesh = trimesh.Trimesh(np.concatenate([b.vertices for b in boxes]),
+                           np.concatenate([boxes[0].faces, boxes[1].faces + 8]), process=False)
+    pieces = _pieces(mesh, None)
+    assert len(pieces) == 2
+    assert sum(p.volume for p in pieces) == pytest.approx(2 * 0.02**3)
+    xml, _ = trial_mjcf(mesh, JAW, 0.05)
+    model = mujoco.MjModel.from_xml_string(xml)
+    assert sum(model.geom_bodyid == model.body("object").id) == 2

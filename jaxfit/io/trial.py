@@ -5,11 +5,11 @@ The scene (``trial_mjcf``), in metres, with +Z up and gravity along -Z:
 
 - **the object**: its *original mesh*, not the primitives, as one free body with one
   mesh geom per convex piece (MuJoCo collides with each geom's convex hull). Without
-  pieces given, the pieces are the mesh's connected bodies (``trimesh.Trimesh.split``):
-  an object that is one connected body (a mug) is then its convex hull, which fills a
-  mug's opening and the hole of its handle. Pass ``pieces`` (say, a CoACD
-  decomposition) for a closer collision shape. Mass from ``density`` over the pieces'
-  hulls;
+  pieces given, the pieces are the mesh's connected bodies (faces joined by shared
+  vertices, coincident vertices merged): an object that is one connected body (a mug)
+  is then its convex hull, which fills a mug's opening and the hole of its handle. Pass
+  ``pieces`` (say, CoACD's ``run_coacd`` parts, as benchmarks/grasping.py does) for a
+  closer collision shape. Mass from ``density`` (kg/m^3) over the pieces' hulls;
 - **a floor** under the object's lowest point (or none: the object then floats without
   gravity until the fingers have closed);
 - **the gripper**: the palm and two finger boxes of ``ParallelJaw.boxes`` in a hand body
@@ -69,10 +69,7 @@ def _up_frame(up: int) -> np.ndarray:
 def _pieces(mesh, pieces):
     import trimesh
 
-    if pieces is None:
-        parts = mesh.split(only_watertight=False) if isinstance(mesh, trimesh.Trimesh) else mesh
-    else:
-        parts = pieces
+    parts = _connected_bodies(mesh) if pieces is None else pieces
     out = []
     for part in parts:
         vertices = np.asarray(part.vertices if hasattr(part, "vertices") else part, np.float64)
@@ -88,6 +85,26 @@ def _pieces(mesh, pieces):
     if not out:
         raise ValueError("the object has no piece with volume to collide with")
     return out
+
+
+def _connected_bodies(mesh) -> list[np.ndarray]:
+    """The vertices (n, 3) of each connected body of ``mesh`` (its faces joined by shared
+    vertices, coincident vertices merged)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    vertices, inverse = np.unique(np.round(np.asarray(mesh.vertices, np.float64), 12),
+                                  axis=0, return_inverse=True)
+    faces = inverse.reshape(-1)[np.asarray(mesh.faces)]
+    if len(faces) == 0:
+        return []
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
+                       shape=(len(vertices),) * 2)
+    count, label = connected_components(graph, directed=False)
+    used = np.zeros(len(vertices), bool)
+    used[faces.reshape(-1)] = True
+    return [vertices[(label == c) & used] for c in range(count) if np.any(used[label == c])]
 
 
 def _numbers(values) -> str:
