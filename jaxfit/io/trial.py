@@ -18,9 +18,11 @@ The scene (``trial_mjcf``), in metres, with +Z up and gravity along -Z:
   gravity compensated); each finger slides along the closing axis under a position
   actuator whose force is capped at ``grip_force`` (a squeeze, not a rigid clamp).
 
-The trial (``lift_trial``): the object settles; the open hand (at the grasp's opening)
-starts at the pre-grasp pose, moves to the grasp pose, the fingers close, the hand lifts
-``lift`` and holds for ``hold`` seconds. Success: the object rose by at least half of
+The trial (``lift_trial``): the object settles (the hand parked 1 m above), the grasp
+moves with it (as if the object were seen again where it came to rest); the open hand
+(at the grasp's opening) starts at the pre-grasp pose (``finger_depth`` back), moves
+to the grasp pose, the fingers close, the hand lifts ``lift`` and holds for ``hold``
+seconds. Success: the object rose by at least half of
 ``lift`` and the object's point that lay midway between the fingertips when they had
 closed still lies between the fingers (within the fingers' span along the closing axis,
 within ``slack`` of the pads across them and along the approach).
@@ -34,7 +36,7 @@ import numpy as np
 
 #: Simulation step (s) and the phases' durations (s): settle, approach, close.
 TIMESTEP = 0.001
-SETTLE, APPROACH, CLOSE = 0.2, 0.5, 0.6
+SETTLE, APPROACH, CLOSE = 0.5, 0.5, 0.6
 #: Friction (sliding) of every geom; MuJoCo's default torsional and rolling friction.
 FRICTION = 1.0
 #: Mass of each finger and of the hand (kg).
@@ -221,25 +223,25 @@ def lift_trial(mesh, pose, width: float, gripper, *, pieces=None, scale: float =
     frame = _up_frame(up)
     rotation = frame.T @ pose[:3, :3]
     position = frame.T @ (pose[:3, 3] * scale)
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, rotation.reshape(-1))
     s = scale
-    standoff = gripper.finger_depth * s
-    approach = rotation[:, 2]
-    pre = position - standoff * approach
+    adr = model.joint("hand").qposadr[0]
+    quat = np.zeros(4)
 
-    hand_joint = model.joint("hand")
-    adr = hand_joint.qposadr[0]
-    data.qpos[adr:adr + 3], data.qpos[adr + 3:adr + 7] = pre, quat
+    def place_hand(at, rotation):
+        mujoco.mju_mat2Quat(quat, rotation.reshape(-1))
+        data.qpos[adr:adr + 3], data.qpos[adr + 3:adr + 7] = at, quat
+        data.qvel[model.joint("hand").dofadr[0]:][:6] = 0.0
+        data.mocap_pos[0], data.mocap_quat[0] = at, quat
+        mujoco.mj_forward(model, data)
+
     fingers = [model.joint(f"finger_{side}").qposadr[0] for side in ("left", "right")]
     data.qpos[fingers] = start
     data.ctrl[:] = start
-    data.mocap_pos[0], data.mocap_quat[0] = pre, quat
     if not floor:
         model.opt.gravity[:] = 0.0
-    mujoco.mj_forward(model, data)
     obj = model.body("object").id
     hand = model.body("hand").id
+    place_hand(position + np.array([0.0, 0.0, 1.0]), rotation)  # parked 1 m above
     finite = True
 
     def run(seconds, update=None):
@@ -256,6 +258,11 @@ def lift_trial(mesh, pose, width: float, gripper, *, pieces=None, scale: float =
 
     run(SETTLE)
     rest = data.xipos[obj].copy()
+    # The grasp moves with the object as it settled (as if the object were seen again).
+    settled = data.xmat[obj].reshape(3, 3).copy()
+    rotation, position = settled @ rotation, settled @ position + data.xpos[obj]
+    pre = position - gripper.finger_depth * s * rotation[:, 2]
+    place_hand(pre, rotation)
     run(APPROACH, lambda u: data.mocap_pos.__setitem__(0, pre + smooth(u) * (position - pre)))
     travel = gripper.max_width * s / 2
     run(CLOSE, lambda u: data.ctrl.__setitem__(slice(None), start + smooth(u) * (travel - start)))
