@@ -13,7 +13,8 @@ floating without gravity until the fingers have closed (the grasp alone). It wri
 top-1 / top-5 / top-20 success rates and the times to ``benchmarks/results/grasping.md``
 and each grasp's outcome to ``benchmarks/results/grasping.json``.
 
-No baseline yet: the issue's antipodal grasps sampled on the mesh are not written.
+Baseline (a second table): antipodal grasps sampled directly on the mesh
+(``antipodal``), the same count, gripper and trials.
 """
 
 from __future__ import annotations
@@ -65,6 +66,53 @@ def convex_pieces(mesh, method: str):
     return [np.asarray(vertices) for vertices, _ in parts]
 
 
+def antipodal(mesh, jaw, count: int, *, seed: int = 0, num_points: int = NUM_POINTS,
+              pairs: int = 20000, min_quality: float = 0.8, approaches: int = 8):
+    """Up to ``count`` grasps sampled on the mesh itself: random pairs of its surface
+    points (with the faces' normals) closer than the jaw's opening, best antipodal
+    quality first (the lower |normal . closing axis| of the two, at least
+    ``min_quality``); for each pair ``approaches`` approach directions around the closing
+    axis, origin midway between the points; kept when the palm and finger boxes at the
+    opening (the span plus the clearance on each side) hold none of the points.
+    Returns poses (K, 4, 4), widths (K,) and the seconds it took."""
+    import trimesh
+
+    start = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    points, faces = trimesh.sample.sample_surface(mesh, num_points, seed=seed)
+    points, normals = np.asarray(points), np.asarray(mesh.face_normals)[faces]
+    i, j = rng.integers(0, len(points), (2, pairs))
+    span = points[j] - points[i]
+    length = np.linalg.norm(span, axis=1)
+    ok = (length > 1e-9) & (length + 2 * jaw.clearance <= jaw.max_width)
+    axis = span / np.where(ok, length, 1.0)[:, None]
+    quality = np.minimum(np.abs(np.sum(normals[i] * axis, axis=1)),
+                         np.abs(np.sum(normals[j] * axis, axis=1)))
+    ok &= quality >= min_quality
+    poses, widths = [], []
+    for k in np.flatnonzero(ok)[np.argsort(-quality[ok], kind="stable")]:
+        y = axis[k]
+        e1 = np.cross(y, np.eye(3)[np.argmin(np.abs(y))])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(y, e1)
+        width = length[k] + 2 * jaw.clearance
+        boxes = jaw.boxes(width)
+        for a in rng.uniform(0, 2 * np.pi) + np.arange(approaches) * 2 * np.pi / approaches:
+            z = np.cos(a) * e1 + np.sin(a) * e2
+            pose = np.eye(4)
+            pose[:3, :3] = np.column_stack([np.cross(y, z), y, z])
+            pose[:3, 3] = 0.5 * (points[i[k]] + points[j[k]])
+            local = (points - pose[:3, 3]) @ pose[:3, :3]
+            if not any(np.any(np.all((local >= lo) & (local <= hi), axis=1))
+                       for lo, hi in boxes):
+                poses.append(pose)
+                widths.append(width)
+                break
+        if len(poses) == count:
+            break
+    return np.array(poses).reshape(-1, 4, 4), np.array(widths), time.perf_counter() - start
+
+
 def rate(outcomes, k: int) -> str:
     if not outcomes:
         return "–"
@@ -94,6 +142,9 @@ def main():
              "| plan warm (s) | plan first (s) |", "|---" * 14 + "|"]
     record = {}
     totals = {(floor, k): [] for floor in (True, False) for k in (1, 5, 20)}
+    base_lines = ["| model | grasps | on floor: top-1 | top-5 | top-20 | floating: top-1 "
+                  "| top-5 | top-20 | sampling (s) |", "|---" * 9 + "|"]
+    base_totals = {key: [] for key in totals}
     for name in args.models:
         rel, scale, up = MODELS[name]
         mesh = load_mesh(DATA / rel)
@@ -111,9 +162,18 @@ def main():
                           for pose, width in zip(g.poses, g.widths, strict=True)]
                   for floor in (True, False)}
         outcomes = {floor: [bool(t) for t in ts] for floor, ts in trials.items()}
-        for floor, k in totals:
-            if outcomes[floor]:
-                totals[floor, k].append(np.mean(outcomes[floor][:k]))
+        base_poses, base_widths, base_seconds = antipodal(mesh, jaw, TOP)
+        base = {floor: [bool(lift_trial(mesh, pose, width, jaw, scale=scale, up=up,
+                                        pieces=pieces, floor=floor))
+                        for pose, width in zip(base_poses, base_widths, strict=True)]
+                for floor in (True, False)}
+        for floor, k in base_totals:
+            base_totals[floor, k].append(np.mean(base[floor][:k]) if base[floor] else 0.0)
+        base_lines.append(f"| {name} | {len(base_poses)} | "
+                          + " | ".join(rate(base[floor], k) for floor in (True, False)
+                                       for k in (1, 5, 20)) + f" | {base_seconds:.2f} |")
+        for floor, k in totals:  # a model without grasps counts as 0
+            totals[floor, k].append(np.mean(outcomes[floor][:k]) if outcomes[floor] else 0.0)
         below = int(np.sum(g.approach @ np.eye(3)[up] > 0.5))
         record[name] = {
             "pieces": len(_pieces(mesh, pieces)), "parts": [p.winner for p in d.parts],
@@ -133,15 +193,20 @@ def main():
         print(lines[-1], flush=True)
     mean = " | ".join(f"{100 * np.mean(totals[key]):.0f} %" if totals[key] else "–"
                       for key in totals)
-    lines.append(f"| mean over models with grasps | | | | | | {mean} | | |")
+    lines.append(f"| mean over the models | | | | | | {mean} | | |")
+    base_lines.append("| mean over the models | | " + " | ".join(
+        f"{100 * np.mean(base_totals[key]):.0f} %" for key in base_totals) + " | |")
     text = ["# Lift trials of jaxfit's grasps (`python -m benchmarks.grasping`)", "",
             __doc__.split("\n\n")[1].replace("\n", " "), "",
             f"Convex pieces: {args.pieces}. From below: grasps approaching upwards "
             "(approach . up > 0.5), which a floor blocks. "
+            "A model without grasps counts as 0 in the means. "
             "Success: the object rose at least 5 cm and its point that lay between the "
             "fingertips when they closed is still between the fingers after the hold. "
             "top-k: successes among the k best grasps (fewer when fewer were found).", "",
-            *lines, ""]
+            *lines, "", "Baseline: antipodal grasps sampled on the mesh (``antipodal``: 20,000 "
+            "random point pairs, quality >= 0.8, 8 approaches each, the first that clears "
+            "the points), the same trials:", "", *base_lines, ""]
     (RESULTS / "grasping.md").write_text("\n".join(text))
     (RESULTS / "grasping.json").write_text(json.dumps(record, indent=1) + "\n")
 
