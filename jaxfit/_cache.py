@@ -42,6 +42,7 @@ ownership and mode are what protect those).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import hmac
@@ -256,6 +257,7 @@ class Stored:
         self.static_positions = frozenset(params.index(n) for n in static_argnames)
         self.options = dict(options or {})
         self.kernels: dict = {}  # signature -> callable of the dynamic arguments
+        self.unproven: dict = {}  # signature -> file of a program read but not yet run
         functools.update_wrapper(self, fn)
 
     def __call__(self, *args, **kwargs):
@@ -278,7 +280,19 @@ class Stored:
                                                             tree)
         if kernel is self.jitted:
             return self.jitted(*args, **kwargs)
-        return kernel(*dyn_args, **dyn_kwargs)
+        if signature not in self.unproven:
+            return kernel(*dyn_args, **dyn_kwargs)
+        try:  # the first call of a program read from disk
+            out = kernel(*dyn_args, **dyn_kwargs)
+        except Exception:  # it loaded but does not compile or run (seen once: "Failed to
+            # deserialize StableHLO"): never trusted again; the plain jit answers
+            with contextlib.suppress(OSError):
+                self.unproven[signature].unlink()
+            del self.unproven[signature]
+            self.kernels[signature] = self.jitted
+            return self.jitted(*args, **kwargs)
+        del self.unproven[signature]
+        return out
 
     def _kernel(self, signature, args, kwargs, leaves, tree):
         """The jitted call of the exported program for one signature: read from the
@@ -303,6 +317,7 @@ class Stored:
             exported = export.deserialize(bytearray(blob))
             if not _takes(exported, leaves, tree):
                 raise ValueError("a program of other arguments")
+            self.unproven[signature] = path
         except Exception:  # missing, partial, unreadable, not ours, not signed by this
             # folder's key for this name, or not this call's: export it (again) and
             # replace the file

@@ -542,3 +542,33 @@ def test_an_entry_outside_jaxfit_folder_is_never_deleted(tmp_path, monkeypatch):
     assert (theirs / "k-cache").exists()
     _cache._drop_entry(Cache(), "k", "-cache")
     assert not (theirs / "k-cache").exists()
+
+
+def test_a_stored_program_that_fails_when_run_is_dropped(tmp_path, monkeypatch):
+    """A signed program of the right arguments that fails in its first call (seen once
+    in a shared tree: "Failed to deserialize StableHLO" raised out of decompose) gives
+    the plain jit's result and its file is removed, instead of the error."""
+    import numpy as np
+    from jax import export
+
+    traced = []
+    x = np.arange(4, dtype=np.float32)
+    _stored_square(tmp_path, monkeypatch, traced)(x, factor=3)
+    (path,) = exported(tmp_path)
+    real = export.deserialize
+
+    class Failing:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def call(self, *args, **kwargs):
+            raise RuntimeError("Failed to deserialize StableHLO")
+
+    monkeypatch.setattr(export, "deserialize", lambda blob: Failing(real(blob)))
+    again = _stored_square(tmp_path, monkeypatch, traced)
+    np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
+    assert not path.exists()
+    np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)  # the plain jit from now on
