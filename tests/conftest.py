@@ -5,6 +5,7 @@ points (bucket 1024), so the whole suite compiles each kernel at most twice.
 Randomness: ``getkey()`` gives a fresh JAX key each call (as optimistix's tests do) and
 ``numpy_rng(key)`` a NumPy generator from one, for the NumPy side (models, points)."""
 
+import functools
 import itertools
 from pathlib import Path
 
@@ -54,6 +55,18 @@ def data_dir():
     if not DATA.is_dir():
         pytest.skip(f"shared data not found at {DATA} (it sits beside the checkout)")
     return DATA
+
+
+@functools.cache
+def benchmark_decomposition(name: str):
+    """The decomposition of benchmark mesh ``name`` (``benchmarks.grasping.MODELS``, its
+    ``NUM_POINTS`` surface points, key 0), computed once for every test that reads it."""
+    from benchmarks.grasping import MODELS, NUM_POINTS
+    from jaxfit import decompose
+    from jaxfit.decomposition.psda import load_source
+
+    return decompose(load_source(DATA / MODELS[name][0], num_points=NUM_POINTS, seed=0),
+                     key=0)
 
 
 def axis_angle_deg(a, b):

@@ -8,8 +8,10 @@ import jax
 import numpy as np
 import pytest
 import trimesh
+from conftest import benchmark_decomposition
 
 import jaxfit
+from benchmarks.grasping import MODELS  # the meshes: file, scale to metres, up axis
 from jaxfit import Box, Cone, Cylinder, Decomposition, Grasps, ParallelJaw, Part, Sphere, grasps
 
 GRIPPER = ParallelJaw(max_width=0.085, finger_depth=0.04, finger_width=0.02)
@@ -211,24 +213,14 @@ def test_decomposed_soup_can(data_dir):
     np.testing.assert_array_less(g.contact_widths, 0.075)
 
 
-BENCHMARK = {  # path, scale to metres (the gripper is sized in metres)
-    "ycb_soup_can": ("ycb/005_tomato_soup_can_textured.gltf", 1.0),
-    "ycb_cracker_box": ("ycb/003_cracker_box_textured.gltf", 1.0),
-    "graspit_mug": ("graspit/mug.iv", 1e-3),
-    "graspit_phone": ("graspit/phone.iv", 1e-3),
-    "pybullet_mug": ("misc/pybullet_data_objects_mug.obj", 1.0),
-    "inventor_duck": ("misc/inventor_mentor_duck.iv", 0.2),
-}
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(BENCHMARK))
+@pytest.mark.parametrize("name", list(MODELS))
 def test_benchmark_meshes_grasps_do_not_collide(data_dir, name):
-    """The six benchmark meshes at 4,000 points (as tests/test_sim.py decomposes them)."""
-    from jaxfit.decomposition.psda import load_source
-
-    path, scale = BENCHMARK[name]
-    d = jaxfit.decompose(load_source(data_dir / path, num_points=4000, seed=0), key=0)
+    """The six benchmark meshes at 4,000 points (decomposed once, for tests/test_sim.py too)."""
+    scale = MODELS[name][1]
+    d = benchmark_decomposition(name)
     gripper = ParallelJaw(max_width=0.085 / scale, finger_depth=0.04 / scale,
                           finger_width=0.02 / scale)
     _assert_sound(grasps(d, gripper, key=0), d.points)

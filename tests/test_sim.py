@@ -11,10 +11,12 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 import trimesh
+from conftest import benchmark_decomposition
 from scipy.spatial.transform import Rotation
 
 import jaxfit
-from jaxfit.decomposition import decompose, load_source
+from benchmarks.grasping import MODELS  # the meshes: file, scale to metres, up axis
+from jaxfit.decomposition import decompose
 from jaxfit.io import sim
 from jaxfit.shapes import Box, Cone, Cylinder, Plane, Sphere, mass_properties
 from jaxfit.shapes._geometry import union_bounds
@@ -27,19 +29,6 @@ except ImportError:  # the tests that need it skip
 needs_mujoco = pytest.mark.skipif(
     mujoco is None, reason="mujoco is not installed (pip install -e '.[sim]')")
 
-#: Benchmark meshes (benchmarks/decomposition.py and the pybullet mug): file, the scale
-#: to metres (GraspIt's models are in millimetres; the Inventor duck has no unit, it is
-#: made 18 cm long), and the axis that points up when the object stands.
-BENCHMARK = {
-    "ycb_soup_can": ("ycb/005_tomato_soup_can_textured.gltf", 1.0, 1),
-    "ycb_cracker_box": ("ycb/003_cracker_box_textured.gltf", 1.0, 1),
-    "graspit_mug": ("graspit/mug.iv", 1e-3, 1),
-    "graspit_phone": ("graspit/phone.iv", 1e-3, 2),
-    "pybullet_mug": ("misc/pybullet_data_objects_mug.obj", 1.0, 2),
-    "inventor_duck": ("misc/inventor_mentor_duck.iv", 0.2, 2),
-}
-#: One cloud size for every benchmark mesh, so they share compiled kernels.
-NUM_POINTS = 4000
 DROP = 0.02  # m above the floor
 SETTLE = 2.0  # s simulated
 REST_SPEED, REST_SPIN = 0.01, 0.1  # m/s, rad/s
@@ -355,18 +344,12 @@ def test_cli_sim_options_are_checked_before_any_work(tmp_path, capsys, monkeypat
 
 
 # ----- the benchmark meshes -------------------------------------------------------------------
-@functools.cache
-def benchmark_decomposition(data_dir, name):
-    path, _, _ = BENCHMARK[name]
-    return decompose(load_source(data_dir / path, num_points=NUM_POINTS, seed=0), key=0)
-
-
 @needs_mujoco
 @pytest.mark.slow
-@pytest.mark.parametrize("name", list(BENCHMARK))
+@pytest.mark.parametrize("name", list(MODELS))
 def test_benchmark_mesh_models_load_match_and_rest(data_dir, tmp_path, name):
-    _, scale, up = BENCHMARK[name]
-    result = benchmark_decomposition(data_dir, name)
+    _, scale, up = MODELS[name]
+    result = benchmark_decomposition(name)
     mjcf = result.to_mjcf(tmp_path / f"{name}.xml", name=name, scale=scale)
     model, data = loaded(mjcf)
     geoms = object_geoms(model)
