@@ -221,6 +221,11 @@ class Model:
         here, not at module level: it costs half a second of every process's start.)"""
         raise NotImplementedError
 
+    def contains(self, points) -> np.ndarray:
+        """(N,) bool: which of points (N, 3) lie in the closed, bounded solid (the surface
+        included); the inside test of the two-sided measures (jaxfit.measures)."""
+        raise NotImplementedError
+
     def sample(self, count: int, rng):
         """(count, 3) points uniform on the sampled surface and their unit outward normals
         (count, 3), from the NumPy generator ``rng``."""
