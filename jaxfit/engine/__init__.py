@@ -13,13 +13,14 @@ a static, hashable object; ``FitOptions`` holds them):
 Around them: ``options`` (``FitOptions`` checked once, ``Bounds``), ``cloud`` (input
 preparation), ``keys`` (where randomness comes from), ``kernel`` (the jitted entry
 points), ``backend`` (every device-specific choice), ``loop`` (the host loop), ``fit``
-(``fit``, ``fit_batch`` and result building).
+(``fit``, ``fit_batch`` and result building), ``result`` (``FitResult``).
 """
 
 from .cloud import DEFAULT_THRESHOLD_FRACTION, bucket_size, default_threshold
-from .fit import FitResult, fit, fit_batch
+from .fit import fit, fit_batch
 from .options import Bounds, FitOptions
 from .refine import LevenbergMarquardt, LocalOptimizer
+from .result import FitResult
 from .sampling import Sampler, UniformSampler
 from .scoring import MSAC, Scorer
 from .stopping import AdaptiveStopping, Status, StoppingRule, required_hypotheses
