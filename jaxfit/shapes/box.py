@@ -177,6 +177,13 @@ class Box(Model):
     def distance(self, points):
         return np.abs(self.residual(points))
 
+    def contains(self, points):
+        """(N,) bool: |local| <= extents / 2 on every axis of the canonical frame
+        (``transform``), the surface included (to a relative 1e-9)."""
+        pose = self.transform()
+        local = (as_points(points) - pose[:3, 3]) @ pose[:3, :3]
+        return np.all(np.abs(local) <= 0.5 * self._array("extents") * (1 + 1e-9), axis=1)
+
     def to_mesh(self):
         import trimesh
 

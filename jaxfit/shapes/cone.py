@@ -144,6 +144,17 @@ class Cone(Model):
         base = g.segment_distance_2d(t, rho, h, 0.0, h, r)
         return np.minimum(side, base)
 
+    def contains(self, points):
+        """(N,) bool: in the canonical frame (``transform``: base disk at z = 0, apex at
+        z = height), 0 <= z <= height and sqrt(x^2 + y^2) <= base_radius (1 - z / height),
+        the surface included (to 1e-9 of the height and the base radius)."""
+        pose = self.transform()
+        local = (as_points(points) - pose[:3, 3]) @ pose[:3, :3]
+        h, r = float(self.height), float(self.base_radius)
+        z, rho = local[:, 2], np.hypot(local[:, 0], local[:, 1])
+        along = (z >= -1e-9 * h) & (z <= h * (1 + 1e-9))
+        return along & (rho * h <= r * (h - z) + 1e-9 * r * h)
+
     def to_mesh(self, sections: int = 64):
         import trimesh
 

@@ -105,6 +105,15 @@ class Cylinder(Model):
         outside = np.hypot(np.maximum(dx, 0.0), np.maximum(dy, 0.0))
         return np.abs(outside + np.minimum(np.maximum(dx, dy), 0.0))
 
+    def contains(self, points):
+        """(N,) bool: in the canonical frame (``transform``), |z| <= height / 2 and
+        x^2 + y^2 <= radius^2 (the surface included, to a relative 1e-9)."""
+        pose = self.transform()
+        local = (as_points(points) - pose[:3, 3]) @ pose[:3, :3]
+        slack = 1 + 1e-9
+        radial = local[:, 0] ** 2 + local[:, 1] ** 2 <= (float(self.radius) * slack) ** 2
+        return radial & (np.abs(local[:, 2]) <= 0.5 * float(self.height) * slack)
+
     def to_mesh(self, sections: int = 64):
         import trimesh
 

@@ -105,6 +105,12 @@ class Plane(Model):
         any outline); the disk patch only gives ``to_mesh`` a size."""
         return np.abs(self.residual(points))
 
+    def contains(self, points):
+        """A plane bounds no solid (``volume`` is 0): ValueError. The two-sided measures
+        (jaxfit.evaluation.twosided) count its patch as surface only, never as volume."""
+        raise ValueError("a plane bounds no solid, so it contains no points; the two-sided "
+                         "measures count a plane's patch as surface only")
+
     def to_mesh(self, sections: int = 64):
         if self.radius is None:
             raise ValueError("an unbounded plane has no mesh; fit it to get a bounded patch")

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _geometry as g
-from ._base import LENGTH, POINT, Cut, Model, register
+from ._base import LENGTH, POINT, Cut, Model, as_points, register
 
 
 @register
@@ -84,6 +84,11 @@ class Sphere(Model):
 
     def distance(self, points):
         return np.abs(self.residual(points))
+
+    def contains(self, points):
+        """(N,) bool: |p - center| <= radius (the surface included, to a relative 1e-9)."""
+        local = as_points(points) - self.transform()[:3, 3]
+        return np.einsum("ij,ij->i", local, local) <= (float(self.radius) * (1 + 1e-9)) ** 2
 
     def to_mesh(self, subdivisions: int = 3):
         import trimesh
