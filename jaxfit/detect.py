@@ -43,6 +43,7 @@ import numpy as np
 
 from . import _checks
 from .engine import FitOptions, default_threshold, fit
+from .io.inputs import converted
 from .normals import estimate_normals
 from .shapes import Model
 
@@ -245,15 +246,19 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
 
     Parameters
     ----------
-    points : (N, 3) array-like of finite coordinates.
+    points : (N, 3) array-like of finite coordinates, or any cloud ``jaxfit.as_cloud``
+        reads (a trimesh or Open3D geometry, a path; a mesh gives
+        ``io.inputs.MESH_POINTS`` points sampled with the seed of ``key``).
     shapes : candidate shapes, simplest first (the order breaks near-ties, see the
         module docstring): names or model classes (or one name or class).
     min_inliers : smallest support worth reporting; the loop stops when no candidate
         reaches it. Default 1 % of the points (at least the largest minimal sample).
     threshold : inlier distance. Default: 0.5 % of the whole cloud's bounding-box
         diagonal, fixed for all rounds.
-    normals : optional (N, 3) normals (any sign); default ``estimate_normals(points,
-        orient=None)``. Used for the compatibility test and passed on to the fits.
+    normals : optional (N, 3) normals (any sign); default the source's own (a mesh's
+        face normals, an Open3D cloud's or a point file's normals), else
+        ``estimate_normals(points, orient=None)``. Used for the compatibility test and
+        passed on to the fits.
     max_angle : largest angle in degrees between a point's normal and the model's.
     connect : connectivity radius in units of the median nearest-neighbour spacing.
     tolerance : relative support margin a more complex shape needs to beat a simpler one.
@@ -274,6 +279,8 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
     -------
     Scene, with ``.shapes`` (list of Detection) and ``.unassigned`` (indices).
     """
+    points, own = converted(points, seed=lambda: _checks.numpy_seed(key))
+    normals = own if normals is None else normals
     cloud, classes, min_inliers, threshold, normals, max_angle, connect, tolerance = \
         _check_options(points, shapes, min_inliers, threshold, normals, max_angle, connect,
                        tolerance, fit_options)

@@ -28,6 +28,7 @@ import os
 import numpy as np
 
 from . import _checks
+from .io.inputs import converted
 
 #: Orientation methods: Hoppe's propagation, each normal on its own, or no orientation.
 ORIENTATIONS = ("mst", "direct", None)
@@ -527,7 +528,10 @@ def estimate_normals(points, k: int = 16, *, orient: str | None = "mst",
 
     Parameters
     ----------
-    points : (N, 3) array-like of finite coordinates.
+    points : (N, 3) array-like of finite coordinates, or any cloud ``jaxfit.as_cloud``
+        reads (a trimesh or Open3D geometry, a path; a mesh gives
+        ``io.inputs.MESH_POINTS`` points, seed 0). Its own normals are not read: these
+        are estimated.
     k : neighbourhood size, the point itself included; 3 <= k <= N.
     orient : "mst" (default): signs propagated along a minimum spanning tree of the k-NN
         graph (Hoppe et al. 1992), one seed per connected component pointing away from
@@ -541,7 +545,7 @@ def estimate_normals(points, k: int = 16, *, orient: str | None = "mst",
     -------
     (N, 3) float64 unit normals.
     """
-    cloud = _checks.cloud(points)
+    cloud = _checks.cloud(converted(points, with_normals=False)[0])
     k = _check_k(k, len(cloud))
     if orient not in ORIENTATIONS:
         raise ValueError(f"unknown orient {orient!r}; expected one of {ORIENTATIONS}")

@@ -218,17 +218,12 @@ class Decomposition:
 
 
 def load_source(source, *, num_points: int = 20000, seed: int = 0) -> np.ndarray:
-    """(N, 3) points from an array, a trimesh mesh (surface-sampled) or a file path
-    (anything ``jaxfit.io.load_points`` reads, Open Inventor ``.iv`` included)."""
-    import trimesh
+    """(N, 3) points of any cloud ``jaxfit.as_cloud`` reads: an array, a trimesh or
+    Open3D geometry (meshes and scenes surface-sampled), or a file path (anything
+    ``jaxfit.io.load_points`` reads, Open Inventor ``.iv`` included)."""
+    from ..io.inputs import as_cloud
 
-    from ..io import load_points, sample_surface
-
-    if isinstance(source, trimesh.Trimesh):
-        return _checks.cloud(sample_surface(source, num_points, seed))
-    if isinstance(source, str | Path):
-        return load_points(source, num_points=num_points, seed=seed)
-    return _checks.cloud(source)
+    return as_cloud(source, num_points=num_points, seed=seed, with_normals=False)[0]
 
 
 def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
@@ -238,8 +233,9 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
 
     Parameters
     ----------
-    source : (N, 3) points, a ``trimesh.Trimesh``, or a path to a mesh / point file /
-        Open Inventor ``.iv`` model.
+    source : (N, 3) points, or any cloud ``jaxfit.as_cloud`` reads: a trimesh
+        ``PointCloud``, ``Trimesh`` or ``Scene`` (a glTF's), an Open3D ``PointCloud`` or
+        ``TriangleMesh``, a path to a mesh / point file / Open Inventor ``.iv`` model.
     gain : BoxDecomposition's split threshold (children's volume / parent's volume must
         fall below it); nearer 1 splits more.
     min_points : smallest part; default 2 % of the points (at least 30).

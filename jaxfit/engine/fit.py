@@ -8,6 +8,7 @@ import numbers
 import numpy as np
 
 from .. import _checks
+from ..io.inputs import converted_batch
 from ..shapes import Model
 from .cloud import Cloud, estimate_normals, prepare
 from .loop import search
@@ -72,7 +73,7 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     """
     cls = _checks.model_class(shape)
     checked = FitOptions.build(options, **settings).check(cls)
-    clouds = list(clouds)
+    clouds, normals = converted_batch(clouds, normals, seed=lambda: _checks.numpy_seed(key))
     if not clouds:
         raise ValueError("clouds is empty: give at least one (N, 3) array")
     if normals is not None and len(normals) != len(clouds):

@@ -13,11 +13,16 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LoadError", "SUPPORTED_EXTENSIONS", "load_points"]
+__all__ = ["LoadError", "SUPPORTED_EXTENSIONS", "load_cloud", "load_points"]
 
 MESH_EXTENSIONS = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf", ".iv")
 TEXT_EXTENSIONS = (".xyz", ".txt", ".csv", ".crd", ".pts")
 SUPPORTED_EXTENSIONS = MESH_EXTENSIONS + TEXT_EXTENSIONS + (".npy",)
+#: Column names a text file's header gives its normals (case-insensitive).
+NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
+#: Unnamed columns 4-6 are normals when every row of them is this close to unit length
+#: (six printed digits are exact to 1e-6; colours 0-255 or intensities are not unit).
+UNIT_TOLERANCE = 1e-3
 #: Longest .npy header read (NumPy's own limit for files it has not written itself).
 NPY_MAX_HEADER = 10_000
 
@@ -27,7 +32,14 @@ class LoadError(ValueError):
 
 
 def load_points(path, *, num_points: int = 20000, seed: int = 0) -> np.ndarray:
-    """Load a point cloud as an (N, 3) float64 array.
+    """Load a point cloud as an (N, 3) float64 array: ``load_cloud`` without the normals
+    (see there for the formats, ``num_points``, ``seed`` and the errors)."""
+    return load_cloud(path, num_points=num_points, seed=seed, with_normals=False)[0]
+
+
+def load_cloud(path, *, num_points: int = 20000, seed: int = 0, with_normals: bool = True):
+    """Load a point cloud as an (N, 3) float64 array, with its normals where the file
+    has them.
 
     Parameters
     ----------
@@ -52,11 +64,23 @@ def load_points(path, *, num_points: int = 20000, seed: int = 0) -> np.ndarray:
     seed : int, default 0
         Seed for surface sampling, so the same file and seed give the same points.
 
+    with_normals : bool, default True
+        Whether to return normals (False: ``normals`` is None, and nothing is spent on
+        them).
+
     Returns
     -------
     points : np.ndarray
         C-contiguous float64 array of shape (N, 3); N == ``num_points`` for meshes with
         faces, otherwise the number of points stored in the file.
+    normals : np.ndarray or None
+        (N, 3) float64 normals as stored (not normalised; any sign), or None where the
+        file has none: a mesh's sampled points get the normals of the faces they lie
+        on; a PLY point cloud its ``nx ny nz`` vertex properties; a text file the
+        columns its header names ``nx ny nz`` (or ``normal_x ...``), or without such a
+        header columns 4-6 when every row of them has unit length (within
+        ``UNIT_TOLERANCE``: colours and intensities are not taken for normals); a
+        ``.npy`` of 6 or more columns, columns 4-6 by the same unit-length rule.
 
     Raises
     ------
@@ -88,12 +112,16 @@ def load_points(path, *, num_points: int = 20000, seed: int = 0) -> np.ndarray:
         raise LoadError(f"no points found in {path}: the file is empty")
 
     if ext in MESH_EXTENSIONS:
-        points = _load_mesh(path, ext, num_points, seed)
+        points, normals = _load_mesh(path, ext, num_points, seed)
     elif ext == ".npy":
-        points = _load_npy(path)
+        points, normals = _load_npy(path)
     else:
-        points = _load_text(path)
-    return np.ascontiguousarray(points, dtype=np.float64)
+        points, normals = _load_text(path, with_normals)
+    if normals is not None and with_normals:
+        normals = np.ascontiguousarray(normals, dtype=np.float64)
+    else:
+        normals = None
+    return np.ascontiguousarray(points, dtype=np.float64), normals
 
 
 def _check_points(points: np.ndarray, path: Path, what: str = "points") -> None:
@@ -108,7 +136,8 @@ def _check_points(points: np.ndarray, path: Path, what: str = "points") -> None:
         )
 
 
-def _load_mesh(path: Path, ext: str, num_points: int, seed: int) -> np.ndarray:
+def _load_mesh(path: Path, ext: str, num_points: int, seed: int):
+    """(points (N, 3), normals (N, 3) or None) of a mesh file (see ``load_cloud``)."""
     import trimesh  # deferred: trimesh is slow to import and only meshes need it
 
     if ext == ".iv":
@@ -118,7 +147,7 @@ def _load_mesh(path: Path, ext: str, num_points: int, seed: int) -> np.ndarray:
             mesh = load_iv(path)
         except IVError as err:  # (it names the file and line already)
             raise LoadError(str(err)) from err
-        return sample_surface(mesh, num_points, seed, path)
+        return sample_oriented(mesh, num_points, seed, path)
     if ext == ".glb":
         _check_glb_chunks(path)
     elif ext in (".ply", ".off"):
@@ -134,16 +163,23 @@ def _load_mesh(path: Path, ext: str, num_points: int, seed: int) -> np.ndarray:
             raise LoadError(f"could not read mesh {path}: {first}") from first
 
     if isinstance(geom, trimesh.Scene):
-        parts = geom.dump()  # transforms applied, so bodies land where the scene puts them
-        meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
-        # Not load(force="mesh"): that turns a face-less cloud into an empty mesh.
-        if meshes:
-            geom = trimesh.util.concatenate(meshes)
-        else:
-            verts = [np.asarray(g.vertices) for g in parts if hasattr(g, "vertices")]
-            geom = trimesh.PointCloud(np.concatenate(verts) if verts else np.empty((0, 3)))
+        geom = merged(geom)
+    return sample_oriented(geom, num_points, seed, path)
 
-    return sample_surface(geom, num_points, seed, path)
+
+def merged(scene):
+    """One trimesh geometry of a ``trimesh.Scene``, every body moved by its node's
+    transform: its meshes with faces concatenated, or without any, a
+    ``trimesh.PointCloud`` of all its vertices. (Not ``load(force="mesh")``: that turns
+    a face-less cloud into an empty mesh.)"""
+    import trimesh
+
+    parts = scene.dump()  # transforms applied, so bodies land where the scene puts them
+    meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    if meshes:
+        return trimesh.util.concatenate(meshes)
+    verts = [np.asarray(g.vertices) for g in parts if hasattr(g, "vertices")]
+    return trimesh.PointCloud(np.concatenate(verts) if verts else np.empty((0, 3)))
 
 
 def _check_counts(path: Path, ext: str) -> None:
@@ -203,6 +239,16 @@ def sample_surface(geom, num_points: int, seed: int = 0, path="mesh") -> np.ndar
     into the vertices (meshes are loaded unprocessed, so nothing else checks them), and
     a mesh without surface area.
     """
+    return sample_oriented(geom, num_points, seed, path, with_normals=False)[0]
+
+
+def sample_oriented(geom, num_points: int, seed: int = 0, path="mesh", *,
+                    with_normals: bool = True):
+    """``sample_surface``'s points (the same ones for the same seed) and their normals:
+    (points (N, 3), normals (N, 3) or None). A sampled point gets the unit normal of
+    its face (by the face's winding); a mesh without faces its stored vertex normals
+    (``vertex_normals``: a PLY cloud's ``nx ny nz``), or None. None too if a sampled
+    face has no direction (a sliver whose cross product underflows)."""
     import trimesh
 
     vertices = np.asarray(getattr(geom, "vertices", np.empty((0, 3))), dtype=np.float64)
@@ -211,7 +257,7 @@ def sample_surface(geom, num_points: int, seed: int = 0, path="mesh") -> np.ndar
         raise LoadError(f"expected 3-D vertices in {path}, got shape {vertices.shape}")
     _check_points(vertices, path, "vertices")
     if faces is None or len(faces) == 0:
-        return vertices
+        return vertices, vertex_normals(geom) if with_normals else None
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
         raise LoadError(f"expected triangles (F, 3) of vertex indices in {path}, got an "
@@ -224,21 +270,50 @@ def sample_surface(geom, num_points: int, seed: int = 0, path="mesh") -> np.ndar
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
         area = geom.area
         if np.isfinite(area) and area > 0:
-            samples, _ = trimesh.sample.sample_surface(geom, int(num_points), seed=seed)
+            samples, where = trimesh.sample.sample_surface(geom, int(num_points), seed=seed)
         else:
             # trimesh's areas (square roots of sums of squares) overflow for coordinates
             # near 1e300 and underflow to 0 for a mesh near 1e-160 in size: such a mesh
             # is sampled in a frame where its coordinates are at most 1, by areas
             # computed without squaring, and scaled back.
-            samples = _sample_scaled(vertices, faces, int(num_points), seed, path)
+            samples, where = _sample_scaled(vertices, faces, int(num_points), seed, path)
     if not np.isfinite(samples).all():
         raise LoadError(f"mesh in {path} has coordinates too large to sample (points on "
                         "its surface overflow float64)")
-    return samples
+    return samples, face_normals(vertices, faces[where]) if with_normals else None
 
 
-def _sample_scaled(vertices, faces, num_points: int, seed, path) -> np.ndarray:
-    """sample_surface for a mesh whose areas over- or underflow (see there)."""
+def face_normals(vertices, triangles) -> np.ndarray | None:
+    """Unit normals (T, 3) of triangles (T, 3) of indices into vertices (V, 3), by their
+    winding, computed in a frame where the coordinates are at most 1 (no overflow for
+    huge meshes, no underflow for tiny ones); None if one has no direction."""
+    scale = float(np.abs(vertices).max()) or 1.0
+    corners = vertices[triangles] / scale
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    largest = np.abs(cross).max(axis=1, keepdims=True)
+    if not np.all(largest > 0):
+        return None
+    cross = cross / largest
+    return cross / np.linalg.norm(cross, axis=1, keepdims=True)
+
+
+def vertex_normals(geom) -> np.ndarray | None:
+    """(V, 3) normals stored with a face-less trimesh geometry, or None: a PLY point
+    cloud's ``nx ny nz`` vertex properties (trimesh keeps them in its metadata)."""
+    data = getattr(geom, "metadata", {}).get("_ply_raw", {}).get("vertex", {}).get("data")
+    try:
+        normals = np.column_stack([np.asarray(data[c], np.float64).reshape(-1)
+                                   for c in ("nx", "ny", "nz")])
+    except (KeyError, TypeError, IndexError, ValueError):
+        return None
+    if len(normals) != len(geom.vertices) or not np.isfinite(normals).all():
+        return None
+    return normals
+
+
+def _sample_scaled(vertices, faces, num_points: int, seed, path):
+    """sample_surface for a mesh whose areas over- or underflow (see there): the points
+    and their face indices."""
     import trimesh
 
     scale = float(np.abs(vertices).max())
@@ -251,9 +326,9 @@ def _sample_scaled(vertices, faces, num_points: int, seed, path) -> np.ndarray:
     if not weight.sum() > 0:
         raise LoadError(f"mesh in {path} has zero surface area; cannot sample points")
     mesh = trimesh.Trimesh(unit, faces, process=False)
-    samples, _ = trimesh.sample.sample_surface(mesh, num_points, face_weight=weight,
-                                               seed=seed)
-    return samples * scale
+    samples, where = trimesh.sample.sample_surface(mesh, num_points, face_weight=weight,
+                                                   seed=seed)
+    return samples * scale, where
 
 
 def _load_npy(path: Path) -> np.ndarray:
@@ -297,24 +372,37 @@ def _load_npy(path: Path) -> np.ndarray:
         raise LoadError(f"could not read .npy file {path}: {e}") from e
     points = arr[:, :3].astype(np.float64)
     _check_points(points, path)
-    return points
+    return points, unit_columns(arr[:, 3:6]) if arr.shape[1] >= 6 else None
 
 
-def _load_text(path: Path) -> np.ndarray:
+def unit_columns(columns) -> np.ndarray | None:
+    """columns (N, 3) as float64 normals if every row is finite and of unit length
+    within ``UNIT_TOLERANCE`` (unnamed columns 4-6 of a point file), else None."""
+    columns = np.asarray(columns, dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        length = np.linalg.norm(columns, axis=1)
+    return columns if len(columns) and np.all(np.abs(length - 1) <= UNIT_TOLERANCE) else None
+
+
+def _load_text(path: Path, with_normals: bool = True):
+    """(points (N, 3), normals (N, 3) or None) of a text point file (see ``load_cloud``)."""
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
         raise LoadError(f"non-numeric (binary or non-UTF-8) content in {path}: {e}") from e
 
+    lines = text.splitlines()
     rows = [
         (num, line.strip())
-        for num, line in enumerate(text.splitlines(), start=1)
+        for num, line in enumerate(lines, start=1)
         if line.strip() and not line.lstrip().startswith("#")
     ]
     # A header is only recognised by having no number in its first three fields, so a data
     # line with one bad value is reported rather than silently dropped as a "header".
     head = re.split(r"[,\s]+", rows[0][1]) if rows else []
+    header = None
     if (len(head) == 1 and head[0].isdigit()) or (head and not any(map(_is_float, head[:3]))):
+        header = head if len(head) > 1 else None
         rows = rows[1:]  # a header line, or the point count that starts a .pts file
     if not rows:
         raise LoadError(f"no points found in {path} (empty file or only a header?)")
@@ -323,8 +411,8 @@ def _load_text(path: Path) -> np.ndarray:
     # in a CSV is reported as a column error rather than being parsed some other way.
     sep = "," if "," in rows[0][1] else None
     try:  # numpy's C parser is several times faster than the Python loop
-        lines = [line for _, line in rows]
-        points = np.loadtxt(lines, delimiter=sep, usecols=(0, 1, 2), ndmin=2, comments=None)
+        data = [line for _, line in rows]
+        points = np.loadtxt(data, delimiter=sep, usecols=(0, 1, 2), ndmin=2, comments=None)
     except ValueError:
         points = _parse_rows(rows, sep, path)  # slower, but says what is wrong and where
 
@@ -334,7 +422,30 @@ def _load_text(path: Path) -> np.ndarray:
             f"{bad.size} of {len(points)} rows in {path} have non-finite (NaN/inf) "
             f"values (first on line {rows[bad[0]][0]})"
         )
-    return points
+    if not with_normals:
+        return points, None
+    if header is None:  # a commented header ("# x y z nx ny nz", as numpy.savetxt writes)
+        named = [line.lstrip("# \t") for line in lines[:rows[0][0] - 1]
+                 if line.lstrip().startswith("#")]
+        header = re.split(r"[,\s]+", named[-1].strip()) if named else None
+    return points, _text_normals([line for _, line in rows], sep, header)
+
+
+def _text_normals(data: list[str], sep, header) -> np.ndarray | None:
+    """The normals of a text file's data lines: the columns its header names (see
+    ``NORMAL_NAMES``), else unnamed columns 4-6 of unit length; None if it has none or
+    they are not numbers in every row."""
+    names = [name.lower() for name in header or ()]
+    columns = next((tuple(names.index(n) for n in trio) for trio in NORMAL_NAMES
+                    if all(n in names for n in trio)), None)
+    try:
+        found = np.loadtxt(data, delimiter=sep, usecols=columns or (3, 4, 5), ndmin=2,
+                           comments=None)
+    except (ValueError, IndexError):
+        return None
+    if columns is None:
+        return unit_columns(found)
+    return found if np.isfinite(found).all() else None
 
 
 def _parse_rows(rows: list[tuple[int, str]], sep: str | None, path: Path) -> np.ndarray:
