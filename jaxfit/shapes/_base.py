@@ -114,8 +114,10 @@ def _estimators(cls) -> dict[str, Estimator]:
 
 
 def register(cls):
-    """Make ``cls`` a frozen dataclass, a JAX pytree, and a known primitive."""
-    cls = dataclasses.dataclass(frozen=True)(cls)
+    """Make ``cls`` a frozen dataclass, a JAX pytree, and a known primitive. (Equality,
+    hashing and the repr are ``Model``'s: the dataclass ones compare array fields with
+    ``==``, which raises, and print ``np.float64(...)``.)"""
+    cls = dataclasses.dataclass(frozen=True, eq=False, repr=False)(cls)
     cls.estimators = _estimators(cls)
     names = [f.name for f in dataclasses.fields(cls)]
     jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
@@ -220,6 +222,61 @@ class Model:
         """A ``trimesh.Trimesh`` of the bounded primitive. (The primitives import trimesh
         here, not at module level: it costs half a second of every process's start.)"""
         raise NotImplementedError
+
+    def to_open3d(self):
+        """An ``open3d.geometry.TriangleMesh`` of ``to_mesh()``'s vertices and triangles,
+        with vertex normals and painted in the primitive's ``colour``. Raises ImportError
+        (saying how to install it) without Open3D."""
+        try:
+            import open3d
+        except ImportError as err:
+            raise ImportError("Model.to_open3d needs Open3D, which is not installed: pip "
+                              "install open3d (or jaxfit[test]); to_mesh() gives a trimesh "
+                              "mesh without it") from err
+        mesh = self.to_mesh()
+        out = open3d.geometry.TriangleMesh(
+            open3d.utility.Vector3dVector(np.asarray(mesh.vertices, np.float64)),
+            open3d.utility.Vector3iVector(np.asarray(mesh.faces, np.int32)))
+        out.compute_vertex_normals()
+        out.paint_uniform_color(np.asarray(self.colour[:3], np.float64) / 255.0)
+        return out
+
+    # ----- comparison and printing -------------------------------------------------------
+    def _values(self):
+        """(field name, float64 array or None) of every field, in order."""
+        return [(f.name, None if (v := getattr(self, f.name)) is None
+                 else np.asarray(v, dtype=np.float64)) for f in dataclasses.fields(self)]
+
+    def __eq__(self, other):
+        """Same primitive type and every field equal, element by element (as float64:
+        ``Sphere([0, 0, 0], 1) == Sphere(np.zeros(3), 1.0)``); NaN equals nothing.
+        Exact: for a tolerance use ``allclose``."""
+        if not isinstance(other, Model):
+            return NotImplemented
+        if type(self) is not type(other):
+            return False
+        return all((a is None and b is None) or (a is not None and b is not None
+                                                 and np.array_equal(a, b))
+                   for (_, a), (_, b) in zip(self._values(), other._values(), strict=True))
+
+    def __hash__(self):
+        """Consistent with ``==``: equal models hash alike (-0.0 is hashed as 0.0)."""
+        return hash((type(self).__name__,) + tuple(
+            None if v is None else (v.shape, (v + 0.0).tobytes()) for _, v in self._values()))
+
+    def allclose(self, other, rtol: float = 1e-5, atol: float = 1e-8) -> bool:
+        """Whether ``other`` is the same primitive type with every field within
+        ``atol + rtol * |other's|`` of this one's (``numpy.allclose``, field by field;
+        None fields must be None in both). Parameters are compared as they are: two
+        models of one solid written differently (an axis and its negation, where a
+        primitive's sign rules allow both) are not close."""
+        return allclose(self, other, rtol=rtol, atol=atol)
+
+    def __repr__(self):
+        """``Sphere(center=[0.0, 0.0, 1.0], radius=0.5)``: fields as plain floats to six
+        significant digits (nested lists for arrays), never ``np.float64(...)``."""
+        return f"{type(self).__name__}(" + ", ".join(
+            f"{f.name}={short(getattr(self, f.name))}" for f in dataclasses.fields(self)) + ")"
 
     def contains(self, points) -> np.ndarray:
         """(N,) bool: which of points (N, 3) lie in the closed, bounded solid (the surface
@@ -383,6 +440,35 @@ class Cut:
         if self.face is None:
             return beyond
         return beyond & model.on_face(points, self.face)
+
+
+def allclose(a: Model, b: Model, *, rtol: float = 1e-5, atol: float = 1e-8) -> bool:
+    """Whether models a and b are of the same primitive type with every field close
+    (``Model.allclose``); False, not an error, for other types or field shapes."""
+    if not (isinstance(a, Model) and isinstance(b, Model)) or type(a) is not type(b):
+        return False
+    for (_, x), (_, y) in zip(a._values(), b._values(), strict=True):
+        if x is None or y is None:
+            if x is not y:
+                return False
+        elif x.shape != y.shape or not np.allclose(x, y, rtol=rtol, atol=atol):
+            return False
+    return True
+
+
+def short(value, digits: int = 6) -> str:
+    """A number or array as plain Python floats rounded to ``digits`` significant
+    digits, nested lists for arrays (``1.0``, ``[0.5, -1.0, 2e-07]``); "None" for None.
+    The reprs of models and results use it."""
+    if value is None:
+        return "None"
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except Exception:  # a traced value, inside jit: it has its own repr
+        return repr(value)
+    rounded = np.vectorize(lambda x: float(f"{x:.{digits}g}"), otypes=[object])(arr) \
+        if arr.size else arr
+    return repr(rounded.tolist() if arr.ndim else float(rounded))
 
 
 def check_density(density) -> float:
