@@ -35,8 +35,12 @@ Measurements: docs/detect.md.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import json
 import time
+import types
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -46,6 +50,7 @@ from .engine import FitOptions, default_threshold, fit
 from .io.inputs import converted
 from .normals import estimate_normals
 from .shapes import Model
+from .shapes._base import short
 
 #: Candidate shapes, simplest first (the order breaks near-ties in support).
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")
@@ -55,13 +60,14 @@ SETTLE_ROUNDS = 8
 NORMAL_K = 16
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, repr=False)
 class Detection:
     """One primitive found in a scene.
 
     model : the fitted primitive (bounded, in the input's coordinates).
     indices : (M,) sorted indices into the input points of its support (compatible,
-        connected inliers), the points it took out of the cloud.
+        connected inliers), the points it took out of the cloud (``Scene.masks`` gives
+        them as masks).
     cost : MSAC cost of the fit over the points it was fitted to (at most ``fit_points``
         of its group).
     round : detection round (0-based) in which it was taken.
@@ -76,8 +82,23 @@ class Detection:
     def shape(self) -> str:
         return self.model.name
 
+    def to_dict(self) -> dict:
+        """JSON-ready: the model (``Model.to_dict``), its indices, cost and round."""
+        return {"model": self.model.to_dict(), "num_points": int(len(self.indices)),
+                "indices": np.asarray(self.indices).tolist(), "cost": float(self.cost),
+                "round": int(self.round)}
 
-@dataclasses.dataclass(frozen=True)
+    @classmethod
+    def from_dict(cls, data: dict) -> Detection:
+        return cls(Model.from_dict(data["model"]), _indices(data["indices"], "indices"),
+                   float(data["cost"]), int(data["round"]))
+
+    def __repr__(self):
+        return (f"Detection(model={self.model!r}, {len(self.indices)} points, "
+                f"cost={short(self.cost)}, round={self.round})")
+
+
+@dataclasses.dataclass(frozen=True, repr=False)
 class Scene:
     """Outcome of ``detect``.
 
@@ -85,6 +106,8 @@ class Scene:
     unassigned : (U,) sorted indices of the points no detection took.
     threshold : inlier distance used; spacing : median nearest-neighbour distance;
     radius : connectivity radius (``connect * spacing``).
+    points : (N, 3) the cloud detect worked on (None for a Scene built without it);
+        ``save`` draws its preview from them.
     """
 
     shapes: list[Detection]
@@ -92,14 +115,126 @@ class Scene:
     threshold: float
     spacing: float
     radius: float
+    points: np.ndarray | None = None
+
+    @property
+    def num_points(self) -> int:
+        """N, the number of points of the cloud (assigned or not)."""
+        return sum(len(d.indices) for d in self.shapes) + len(self.unassigned)
 
     def labels(self) -> np.ndarray:
         """(N,) index into ``shapes`` of each input point's detection, -1 if unassigned."""
-        n = sum(len(d.indices) for d in self.shapes) + len(self.unassigned)
-        out = np.full(n, -1)
+        out = np.full(self.num_points, -1)
         for i, d in enumerate(self.shapes):
             out[d.indices] = i
         return out
+
+    def masks(self) -> np.ndarray:
+        """(D, N) bool: row i marks the points of ``shapes[i]`` (its ``indices``)."""
+        return self.labels()[None, :] == np.arange(len(self.shapes))[:, None]
+
+    def to_dict(self, *, with_points: bool = False) -> dict:
+        """JSON-ready: every detection (``Detection.to_dict``, indices included), the
+        unassigned indices and the settings; the points too with ``with_points`` (N x 3
+        numbers: ``save`` writes them to points.npy instead)."""
+        out = {"num_points": self.num_points,
+               "shapes": [d.to_dict() for d in self.shapes],
+               "unassigned": np.asarray(self.unassigned).tolist(),
+               "threshold": float(self.threshold), "spacing": float(self.spacing),
+               "radius": float(self.radius)}
+        if with_points and self.points is not None:
+            out["points"] = np.asarray(self.points).tolist()
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict, points=None) -> Scene:
+        """Inverse of ``to_dict``: the points from ``data["points"]``, else ``points``
+        (an (N, 3) array, or None)."""
+        if "points" in data:
+            points = data["points"]
+        if points is not None:
+            points = _checks.cloud(points)
+        scene = cls([Detection.from_dict(d) for d in data["shapes"]],
+                    _indices(data["unassigned"], "unassigned"), float(data["threshold"]),
+                    float(data["spacing"]), float(data["radius"]), points)
+        if points is not None and len(points) != scene.num_points:
+            raise ValueError(f"the scene covers {scene.num_points} points, but "
+                             f"{len(points)} points were given")
+        return scene
+
+    def to_trimesh(self):
+        """A ``trimesh.Scene`` of the detected primitives, coloured by type."""
+        import trimesh
+
+        out = trimesh.Scene()
+        for i, d in enumerate(self.shapes):
+            mesh = d.model.to_mesh()
+            mesh.visual.face_colors = d.model.colour
+            out.add_geometry(mesh, node_name=f"shape{i}_{d.shape}")
+        return out
+
+    def save(self, directory) -> Path:
+        """Write into ``directory``: scene.json (``to_dict``), and where they exist
+        points.npy (the points), scene.glb (the primitives, ``to_trimesh``) and
+        preview.png (the points coloured by detection beside the primitives, as
+        ``Decomposition.save`` draws). All are written to temporary files and renamed
+        into place together (``io.atomic``). Returns the directory."""
+        from .io.atomic import replacing
+        from .io.preview import render
+
+        out = Path(directory)
+        out.mkdir(parents=True, exist_ok=True)
+        names = ["scene.json"]
+        if self.points is not None:
+            names += ["points.npy"] + (["preview.png"] if len(self.points) else [])
+        if self.shapes:
+            names.append("scene.glb")
+        with contextlib.ExitStack() as stack:
+            files = {name: stack.enter_context(replacing(out / name)) for name in names}
+            files["scene.json"].write_text(json.dumps(self.to_dict(), indent=1))
+            if "points.npy" in files:
+                np.save(files["points.npy"], np.asarray(self.points, np.float64))
+            if "scene.glb" in files:
+                self.to_trimesh().export(files["scene.glb"])
+            if "preview.png" in files:
+                render(_Preview(self), files["preview.png"])
+        return out
+
+    @classmethod
+    def load(cls, directory) -> Scene:
+        """The Scene ``save`` wrote into ``directory`` (its points when points.npy is
+        there)."""
+        folder = Path(directory)
+        try:
+            data = json.loads((folder / "scene.json").read_text())
+        except (OSError, ValueError) as err:
+            raise ValueError(f"no readable scene.json in {folder}: {err}") from err
+        points = folder / "points.npy"
+        return cls.from_dict(data, np.load(points) if points.is_file() else None)
+
+    def __repr__(self):
+        found = ", ".join(f"{d.shape} ({len(d.indices)} points)" for d in self.shapes)
+        return (f"Scene({len(self.shapes)} shapes: {found or 'none'}; "
+                f"{len(self.unassigned)} of {self.num_points} points unassigned, "
+                f"threshold={short(self.threshold)})")
+
+
+class _Preview:
+    """A Scene as ``io.preview.render`` reads a decomposition: points and parts (each
+    with indices, model and kind)."""
+
+    def __init__(self, scene: Scene):
+        self.points = np.asarray(scene.points, np.float64)
+        self.parts = [types.SimpleNamespace(indices=d.indices, model=d.model, kind=d.shape)
+                      for d in scene.shapes]
+
+
+def _indices(values, name: str) -> np.ndarray:
+    """values as an ascending (M,) int64 array, or ValueError."""
+    arr = np.asarray(values, dtype=np.int64).reshape(-1) if len(values) else np.empty(0, np.int64)
+    if arr.size and arr.min() < 0:
+        raise ValueError(f"{name} must be non-negative indices")
+    return arr
 
 
 #: Mean radius pairs per point above which ``components`` joins points through
@@ -318,7 +453,7 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
                  if len(d.indices) >= min_inliers]
     taken = np.concatenate([d.indices for d in found]) if found else np.empty(0, int)
     unassigned = np.setdiff1d(np.arange(len(cloud)), taken)
-    return Scene(found, unassigned, threshold, spacing, radius)
+    return Scene(found, unassigned, threshold, spacing, radius, cloud)
 
 
 @dataclasses.dataclass(frozen=True)
