@@ -42,7 +42,8 @@ import numpy as np
 from .. import _checks
 from ..engine import fit_batch
 from ..shapes import Box, Model, mass_properties
-from .boxdecomp import BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
+from ..shapes._base import short
+from .boxdecomp import BoxNode, BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import shallow
 
 #: The primitives tried on every part by default: the thesis's four.
@@ -88,12 +89,13 @@ class Candidate:
         return not self.plausible, self.mean_distance
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
+@dataclasses.dataclass(frozen=True, eq=False, repr=False)
 class Part:
     """A leaf of the box decomposition and the primitive that won it.
 
     indices : (M,) indices into ``Decomposition.points`` (the leaf's points, or with
-        ``reassign`` the points nearest to this part's primitive).
+        ``reassign`` the points nearest to this part's primitive); ``mask(N)`` gives
+        them as a mask, ``Decomposition.masks()`` every part's.
     box : the minimum-volume bounding box of those points.
     kind : the winning primitive's name (``Model.name``; "box" when the MVBB wins).
     winner : the winning candidate: ``kind``, or "mvbb" when the bounding box won.
@@ -110,8 +112,56 @@ class Part:
     mean_distance: float
     candidates: dict[str, Candidate]
 
+    def mask(self, num_points: int) -> np.ndarray:
+        """(num_points,) bool marking ``indices`` (``Decomposition.masks`` gives all)."""
+        out = np.zeros(num_points, bool)
+        out[self.indices] = True
+        return out
 
-@dataclasses.dataclass(frozen=True, eq=False)
+    def to_dict(self) -> dict:
+        """JSON-ready: primitive, score, indices, box, every candidate, and the winning
+        primitive's pose (``transform``, 4x4 rows), volume and centroid."""
+        return {
+            "kind": self.kind,
+            "winner": self.winner,
+            "model": self.model.to_dict(),
+            "mean_distance": self.mean_distance,
+            "num_points": int(self.indices.size),
+            "indices": np.asarray(self.indices).tolist(),
+            "box": self.box.to_dict(),
+            "candidates": {name: {"model": c.model.to_dict(), "mean_distance": c.mean_distance,
+                                  "overshoot": c.overshoot}
+                           for name, c in self.candidates.items()},
+            "transform": self.model.transform().tolist(),
+            "volume": self.model.volume(),
+            "centroid": self.model.centroid().tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Part:
+        """Inverse of ``to_dict`` (its derived entries, pose, volume and centroid, are
+        recomputed from the model rather than read)."""
+        if "indices" not in data:
+            raise ValueError("a part's dictionary has no 'indices' (written before "
+                             "jaxfit stored them?)")
+        candidates = {name: Candidate(Model.from_dict(c["model"]), float(c["mean_distance"]),
+                                      float(c.get("overshoot", 0.0)))
+                      for name, c in data["candidates"].items()}
+        box = Box.from_dict(data["box"])
+        if "mvbb" in candidates:  # the part's own box is its MVBB candidate (one object)
+            candidates["mvbb"] = dataclasses.replace(candidates["mvbb"], model=box)
+        winner = data["winner"]
+        model = candidates[winner].model if winner in candidates else \
+            Model.from_dict(data["model"])
+        return cls(np.asarray(data["indices"], dtype=np.int64).reshape(-1), box, data["kind"],
+                   winner, model, float(data["mean_distance"]), candidates)
+
+    def __repr__(self):
+        return (f"Part(kind={self.kind!r}, winner={self.winner!r}, {self.indices.size} points, "
+                f"mean_distance={short(self.mean_distance)}, model={self.model!r})")
+
+
+@dataclasses.dataclass(frozen=True, eq=False, repr=False)
 class Decomposition:
     """The object as a set of primitives.
 
@@ -137,31 +187,68 @@ class Decomposition:
             scene.add_geometry(mesh, node_name=f"part{i}_{part.kind}")
         return scene
 
-    def to_dict(self) -> dict:
-        """JSON-ready: per part its primitive, score, size, every candidate, and its pose
-        (``transform``, 4x4 rows), volume and centroid; the totals (``mass_properties`` at
-        density 1: the volume, centroid and inertia per unit density); the hierarchy."""
-        parts = []
-        for part in self.parts:
-            parts.append({
-                "kind": part.kind,
-                "winner": part.winner,
-                "model": part.model.to_dict(),
-                "mean_distance": part.mean_distance,
-                "num_points": int(part.indices.size),
-                "box": part.box.to_dict(),
-                "candidates": {name: {"model": c.model.to_dict(), "mean_distance": c.mean_distance,
-                                      "overshoot": c.overshoot}
-                               for name, c in part.candidates.items()},
-                "transform": part.model.transform().tolist(),
-                "volume": part.model.volume(),
-                "centroid": part.model.centroid().tolist(),
-            })
+    def labels(self) -> np.ndarray:
+        """(N,) index into ``parts`` of each point's part (-1 for a point in none)."""
+        out = np.full(len(self.points), -1)
+        for i, part in enumerate(self.parts):
+            out[part.indices] = i
+        return out
+
+    def masks(self) -> np.ndarray:
+        """(P, N) bool: row i marks the points of ``parts[i]`` (its ``indices``)."""
+        return np.stack([p.mask(len(self.points)) for p in self.parts]) if self.parts \
+            else np.zeros((0, len(self.points)), bool)
+
+    def to_dict(self, *, with_points: bool = False) -> dict:
+        """JSON-ready: per part its primitive, score, indices, size, every candidate, and
+        its pose (``transform``, 4x4 rows), volume and centroid (``Part.to_dict``); the
+        totals (``mass_properties`` at density 1: the volume, centroid and inertia per
+        unit density); the hierarchy, with each point's leaf (``leaf_labels``) so that
+        ``from_dict`` rebuilds it. With ``with_points`` the points too (N x 3 numbers;
+        ``save`` writes them to points.npy instead)."""
         volume, centroid, inertia = self.mass_properties(1.0)
         totals = {"volume": volume, "centroid": centroid.tolist(),
                   "inertia_per_density": inertia.tolist()}
-        return {"num_points": int(len(self.points)), "seconds": self.seconds, "parts": parts,
-                "totals": totals, "hierarchy": self.tree.to_dict()}
+        hierarchy = self.tree.to_dict()
+        hierarchy["leaf_labels"] = self.tree.leaf_labels(len(self.points)).tolist()
+        out = {"num_points": int(len(self.points)), "seconds": self.seconds,
+               "parts": [part.to_dict() for part in self.parts], "totals": totals,
+               "hierarchy": hierarchy}
+        if with_points:
+            out["points"] = np.asarray(self.points).tolist()
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict, points=None) -> Decomposition:
+        """Inverse of ``to_dict``: the points from ``data["points"]``, else ``points``
+        (N, 3), which a decomposition needs (its parts index them); ValueError without."""
+        if "points" in data:
+            points = data["points"]
+        if points is None:
+            raise ValueError("the decomposition's dictionary holds no points: pass "
+                             "points=(N, 3) array, or write it with to_dict(with_points=True)")
+        points = _checks.cloud(points)
+        if len(points) != data["num_points"]:
+            raise ValueError(f"the decomposition was of {data['num_points']} points, "
+                             f"{len(points)} were given")
+        return cls(points, tuple(Part.from_dict(p) for p in data["parts"]),
+                   _tree_from_dict(data["hierarchy"], len(points)), float(data["seconds"]))
+
+    @classmethod
+    def load(cls, directory) -> Decomposition:
+        """The Decomposition ``save`` wrote into ``directory`` (parts.json, points.npy)."""
+        folder = Path(directory)
+        try:
+            data = json.loads((folder / "parts.json").read_text())
+            points = np.load(folder / "points.npy")
+        except (OSError, ValueError) as err:
+            raise ValueError(f"no saved decomposition in {folder}: {err}") from err
+        return cls.from_dict(data, points)
+
+    def __repr__(self):
+        kinds = ", ".join(p.winner for p in self.parts)
+        return (f"Decomposition({len(self.parts)} parts from {len(self.points)} points: "
+                f"{kinds}; {self.seconds:.2f} s)")
 
     def mass_properties(self, density: float = 1.0):
         """(mass (), centre of mass (3,), inertia tensor (3, 3) about it) of the parts'
@@ -190,18 +277,21 @@ class Decomposition:
                           mesh_dir=mesh_dir, **options)
 
     def save(self, directory) -> Path:
-        """Write parts.json, decomposition.glb and preview.png into ``directory``: all
-        three are written to temporary files first and renamed into place only when all
-        are done (``io.atomic``), so a save that fails or is interrupted while writing
-        leaves the old files."""
+        """Write parts.json (``to_dict``), points.npy (the points: ``load`` reads both
+        back), decomposition.glb and preview.png into ``directory``: all are written to
+        temporary files first and renamed into place only when all are done
+        (``io.atomic``), so a save that fails or is interrupted while writing leaves the
+        old files."""
         from ..io.atomic import replacing
         from ..io.preview import render
 
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
-        with (replacing(out / "parts.json") as parts, replacing(out / "decomposition.glb") as glb,
+        with (replacing(out / "parts.json") as parts, replacing(out / "points.npy") as points,
+              replacing(out / "decomposition.glb") as glb,
               replacing(out / "preview.png") as preview):
             parts.write_text(json.dumps(self.to_dict(), indent=1))
+            np.save(points, np.asarray(self.points, np.float64))
             self.to_scene().export(glb)
             render(self, preview)
         return out
@@ -293,6 +383,25 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
             break
         parts = candidate
     return Decomposition(points, tuple(parts), tree, time.perf_counter() - started)
+
+
+def _tree_from_dict(data: dict, num_points: int) -> BoxTree:
+    """The BoxTree of ``Decomposition.to_dict``'s hierarchy: each leaf's points from
+    ``leaf_labels``, each inner node's the union of its children's (the boxes split
+    their points in two)."""
+    labels = np.asarray(data.get("leaf_labels", ()), dtype=np.int64).reshape(-1)
+    if len(labels) != num_points:
+        raise ValueError(f"the hierarchy's leaf_labels must give one leaf per point "
+                         f"({num_points}), got {len(labels)}")
+    nodes = data["nodes"]
+    indices: dict[int, np.ndarray] = {
+        node: np.flatnonzero(labels == k) for k, node in enumerate(data["leaves"])}
+    for node in reversed(nodes):  # breadth-first order: children after parents
+        if node["children"]:
+            indices[node["id"]] = np.sort(np.concatenate([indices[c] for c in node["children"]]))
+    built = tuple(BoxNode(Box.from_dict(n["box"]), indices[n["id"]], tuple(n["children"]),
+                          n["parent"], int(n["depth"])) for n in nodes)
+    return BoxTree(built, float(data["gain"]), int(data["min_points"]), data["reference"])
 
 
 def overall_distance(parts) -> float:
