@@ -1,5 +1,12 @@
-"""Command line: ``jaxfit fit CLOUD --shape S``, ``demo``, ``decompose`` (``--urdf``,
-``--mjcf``: simulator models), ``grasp`` (parallel-jaw grasps) and ``evaluate``.
+"""Command line: ``jaxfit fit CLOUD --shape S``, ``detect``, ``decompose`` (``--urdf``,
+``--mjcf``: simulator models), ``grasp`` (parallel-jaw grasps), ``batch`` (a whole
+dataset), ``demo``, ``evaluate`` and ``warmup``.
+
+Contract: every output path is checked (kind, folder, writable, extension) before any
+work, so a long run never ends on a bad path; every flag given is honoured or refused;
+bad input exits 2 and any other error 1, each with one line on stderr (the traceback
+with ``JAXFIT_DEBUG=1``). Results go to stdout and progress to stderr, each line of
+progress ending with the seconds since the command started.
 
 The choices of ``--shape``, ``--estimator``, ``--scenario`` and ``--object`` come from
 ``jaxfit.shapes.REGISTRY``, ``ESTIMATORS``, ``scenarios.SCENARIOS`` and
@@ -9,6 +16,7 @@ The choices of ``--shape``, ``--estimator``, ``--scenario`` and ``--object`` com
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -25,21 +33,51 @@ from .io.atomic import replacing
 from .shapes import REGISTRY
 from .shapes._base import ESTIMATORS
 
-#: Formats ``--mesh`` writes (trimesh's exporters).
-MESH_OUTPUTS = (".ply", ".stl", ".obj", ".off", ".glb", ".gltf")
+#: Formats ``--mesh`` writes (trimesh's exporters; ``.gltf`` is left out because it
+#: writes its buffers as separate files beside it: use ``.glb``).
+MESH_OUTPUTS = (".ply", ".stl", ".obj", ".off", ".glb")
 #: Set to see the traceback of an unexpected error instead of its one-line message.
 DEBUG_ENV = "JAXFIT_DEBUG"
 
+DESCRIPTION = """\
+Fit primitive shapes (plane, sphere, cylinder, cone, box) to 3-D point clouds, find
+several in a scene, decompose objects into primitives and plan grasps on them.
+
+Inputs: meshes (.ply .obj .stl .off .glb .gltf .iv, surface-sampled), point files
+(.xyz .txt .csv .crd .pts: x y z per row) and .npy arrays. Results go to stdout,
+progress to stderr. Run 'jaxfit COMMAND --help' for a command's options."""
+
+EPILOG = """\
+examples:
+  jaxfit demo                                  decompose a built-in mallet
+  jaxfit fit scan.ply --shape cylinder --json fit.json
+  jaxfit detect scene.xyz --out scene/
+  jaxfit decompose mug.obj --out mug/ --urdf
+  jaxfit batch models/ --out results/ --workers 2
+
+exit status: 0 done, 1 an unexpected error (or a failed model in batch), 2 bad input,
+130 interrupted."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage error as one line (the usage is one --help away)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+# ----- output paths, checked before any work -------------------------------------------
+
 
 def _file_target(path: str, flag: str, suffixes=None) -> None:
-    """Raise ValueError unless a file can be written at ``path`` (checked before any
-    work, so a long run never ends on a bad output path)."""
+    """Raise ValueError unless a file can be written at ``path`` with one of
+    ``suffixes`` (checked before any work, so a long run never ends on a bad path)."""
     target = Path(path)
+    if target.is_dir():
+        raise ValueError(f"{flag} {path} is a folder; give a file name")
     if suffixes and target.suffix.lower() not in suffixes:
         raise ValueError(f"{flag} {path}: unsupported extension {target.suffix!r}; use one "
                          f"of {', '.join(suffixes)}")
-    if target.is_dir():
-        raise ValueError(f"{flag} {path} is a folder; give a file name")
     folder = target.parent if str(target.parent) else Path(".")
     if not folder.is_dir():
         raise ValueError(f"{flag} {path}: the folder {folder} does not exist")
@@ -62,12 +100,14 @@ def _folder_target(path: str, flag: str) -> None:
 
 def _check_outputs(args) -> None:
     """Every output path of the command, checked before it starts."""
+    if args.command == "demo" and args.shape is None and args.out is None:
+        args.out = DEMO_OUT  # the decomposition demo always writes its folder
     if getattr(args, "json", None):
-        _file_target(args.json, "--json")
+        _file_target(args.json, "--json", (".json",))
     if getattr(args, "mesh", None):
         _file_target(args.mesh, "--mesh", MESH_OUTPUTS)
-    if getattr(args, "out", None) and not (args.command == "demo" and args.shape):
-        _folder_target(args.out, "--out")  # (demo --shape fits one cloud: no folder)
+    if getattr(args, "out", None):
+        _folder_target(args.out, "--out")
     if getattr(args, "urdf", False) or getattr(args, "mjcf", False):
         _check_sim_options(args)
 
@@ -89,6 +129,24 @@ def _check_sim_options(args) -> None:
             _file_target(str(Path(args.out) / f"{args.name}{suffix}"), flag)
 
 
+# ----- writing and printing ------------------------------------------------------------
+
+
+def _write_json(path, payload) -> None:
+    with replacing(path) as part:
+        part.write_text(json.dumps(payload, indent=1))
+    print(f"wrote {path}")
+
+
+def _write_mesh(path, meshes) -> None:
+    """One mesh file of the given trimesh meshes (concatenated, colours kept)."""
+    import trimesh
+
+    with replacing(path) as part:
+        trimesh.util.concatenate(list(meshes)).export(part)
+    print(f"wrote {path}")
+
+
 def _print_model(model, title):
     params = model.to_dict()
     print(f"{title} {params.pop('type')}:")
@@ -97,34 +155,45 @@ def _print_model(model, title):
         print(f"  {name:<11} {text}")
 
 
-def _print_result(result, seconds: float):
-    _print_model(result.model, "fitted")
-    print(f"inliers     {result.num_inliers} of {result.inliers.size} "
-          f"(threshold {result.threshold:.6g})")
-    print(f"hypotheses  {result.num_hypotheses} ({result.status.value}), "
-          f"{seconds:.3f} s including compilation")
+def _fit_payload(result) -> dict:
+    """The JSON of a fit: ``FitResult.to_dict()``."""
+    if hasattr(result, "to_dict"):  # DEV: until FitResult.to_dict lands
+        return result.to_dict()
+    return {"model": result.model.to_dict(), "num_inliers": result.num_inliers,
+            "num_points": int(result.inliers.size), "cost": result.cost,
+            "threshold": result.threshold, "num_hypotheses": result.num_hypotheses,
+            "status": result.status.value}
 
 
-def _fit_and_report(points, args):
+def _fit_and_report(points, args, json_path=None, mesh_path=None):
     import jaxfit
 
     start = time.perf_counter()
     result = jaxfit.fit(points, args.shape, threshold=args.threshold, key=args.seed,
                         estimator=args.estimator)
-    _print_result(result, time.perf_counter() - start)
-    if args.json:
-        payload = {"model": result.model.to_dict(), "num_inliers": result.num_inliers,
-                   "num_points": int(result.inliers.size), "cost": result.cost,
-                   "threshold": result.threshold, "num_hypotheses": result.num_hypotheses,
-                   "status": result.status.value}
-        with replacing(args.json) as path:
-            path.write_text(json.dumps(payload, indent=2))
-        print(f"wrote {args.json}")
-    if args.mesh:
-        with replacing(args.mesh) as path:
-            result.model.to_mesh().export(path)
-        print(f"wrote {args.mesh}")
+    seconds = time.perf_counter() - start
+    _print_model(result.model, "fitted")
+    print(f"inliers     {result.num_inliers} of {result.inliers.size} "
+          f"(threshold {result.threshold:.6g})")
+    print(f"hypotheses  {result.num_hypotheses} ({result.status.value}), "
+          f"{seconds:.3f} s including compilation")
+    if json_path:
+        _write_json(json_path, _fit_payload(result))
+    if mesh_path:
+        _write_mesh(mesh_path, [result.model.to_mesh()])
     return result
+
+
+def _progress(start: float):
+    """A stderr printer of progress lines, each ending with the seconds since ``start``
+    (the form decompose's own progress lines have)."""
+    def say(message: str) -> None:
+        print(f"{message} ({time.perf_counter() - start:.2f} s)", file=sys.stderr,
+              flush=True)
+    return say
+
+
+# ----- commands ------------------------------------------------------------------------
 
 
 def _cmd_fit(args):
@@ -132,117 +201,53 @@ def _cmd_fit(args):
 
     points = load_points(args.cloud, num_points=args.num_points, seed=args.seed)
     print(f"{args.cloud}: {len(points)} points")
-    _fit_and_report(points, args)
+    _fit_and_report(points, args, args.json, args.mesh)
 
 
-def _cmd_demo(args):
-    if args.shape is None:
-        return _demo_decomposition(args)
-    from .evaluation.synthetic import demo_cloud
+def _cmd_detect(args):
+    from .detect import detect
+    from .io import load_points
 
-    points, truth, _ = demo_cloud(args.shape, seed=args.seed)
-    print(f"demo: {len(points)} points, half of them uniform outliers, around a known "
-          f"{args.shape}")
-    _print_model(truth, "true")
-    _fit_and_report(points, args)
-
-
-def _parser():
-    parser = argparse.ArgumentParser(prog="jaxfit", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    def common(p, default_shape=None, required=True):
-        p.add_argument("--shape", default=default_shape, required=required,
-                       choices=list(REGISTRY))
-        p.add_argument("--threshold", type=float, default=None,
-                       help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
-        p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-        p.add_argument("--estimator", choices=ESTIMATORS, default=None,
-                       help="minimal-sample estimator (default: the shape's best)")
-        p.add_argument("--json", metavar="OUT", help="write the result as JSON")
-        p.add_argument("--mesh", metavar="OUT", help="write the primitive's mesh (.ply, .stl, ...)")
-
-    fit = sub.add_parser("fit", help="fit one primitive to a point cloud or mesh file")
-    fit.add_argument("cloud", help=".ply .obj .stl .off .glb .gltf .iv .xyz .txt .csv .crd .npy")
-    fit.add_argument("--num-points", type=int, default=20000,
-                     help="points sampled from a mesh's surface (default 20000)")
-    common(fit)
-    fit.set_defaults(run=_cmd_fit)
-
-    demo = sub.add_parser(
-        "demo", help="decompose a built-in object (no input needed); with --shape, fit one "
-                     "primitive among outliers instead")
-    demo.add_argument("--object", default="mallet",
-                      choices=COMPOSITES)
-    demo.add_argument("--out", default="jaxfit-demo", help="output folder (./jaxfit-demo)")
-    demo.add_argument("--gain", type=float, default=0.96)
-    common(demo, default_shape=None, required=False)
-    demo.set_defaults(run=_cmd_demo)
-
-    decompose = sub.add_parser("decompose", help="decompose an object into primitives")
-    decompose.add_argument("input", help="mesh, point file or Open Inventor .iv model")
-    decompose.add_argument("--gain", type=float, default=0.96,
-                           help="split while children/parent volume < gain (0.96)")
-    decompose.add_argument("--min-points", type=int, default=None,
-                           help="smallest part (default 2%% of the points)")
-    decompose.add_argument("--num-points", type=int, default=20000,
-                           help="points sampled from a mesh (20000)")
-    decompose.add_argument("--seed", type=int, default=0)
-    decompose.add_argument("--out", default=None,
-                           help="folder for parts.json, decomposition.glb, preview.png")
-    decompose.add_argument("--urdf", action="store_true",
-                           help="also write the primitives as a URDF robot, OUT/NAME.urdf")
-    decompose.add_argument("--mjcf", action="store_true",
-                           help="also write them as a MuJoCo model, OUT/NAME.xml")
-    decompose.add_argument("--name", default="object",
-                           help="--urdf/--mjcf: the body's name and file stem (object)")
-    decompose.add_argument("--density", type=float, default=1000.0,
-                           help="--urdf/--mjcf: mass per unit volume in written units (1000)")
-    decompose.add_argument("--scale", type=float, default=1.0,
-                           help="--urdf/--mjcf: multiplies every length (0.001 for a model "
-                                "in millimetres; default 1)")
-    decompose.set_defaults(run=_cmd_decompose)
-    grasp = sub.add_parser("grasp", help="plan parallel-jaw grasps on an object's primitives")
-    grasp.add_argument("input", help="mesh, point file or Open Inventor .iv model")
-    grasp.add_argument("--out", required=True, help="folder for grasps.json and grasps.png")
-    grasp.add_argument("--gripper-width", type=float, default=None,
-                       help="widest opening in the model's units (default 0.085 / --scale)")
-    grasp.add_argument("--finger-depth", type=float, default=None,
-                       help="finger length along the approach (default 0.47 x the width)")
-    grasp.add_argument("--finger-width", type=float, default=None,
-                       help="finger pad width (default 0.235 x the width)")
-    grasp.add_argument("--scale", type=float, default=1.0,
-                       help="metres per model unit for the default gripper (0.001 for "
-                            "millimetres; default 1)")
-    grasp.add_argument("--top", type=int, default=10, help="grasps kept, best first (10)")
-    grasp.add_argument("--num-points", type=int, default=20000,
-                       help="points sampled from a mesh (20000)")
-    grasp.add_argument("--seed", type=int, default=0)
-    grasp.set_defaults(run=_cmd_grasp)
-    evaluate = sub.add_parser(
-        "evaluate", help="the thesis's RN/RNIM/SN/SNIM evaluation: CSV, tables and plots")
-    evaluate.add_argument("--shape", nargs="+", default=list(evaluation.SHAPES),
-                          choices=list(REGISTRY))
-    evaluate.add_argument("--scenario", nargs="+", default=list(scenarios.SCENARIOS),
-                          choices=scenarios.SCENARIOS)
-    evaluate.add_argument("--repeats", type=int, default=10, help="clouds per level (10)")
-    evaluate.add_argument("--count", type=int, default=2000, help="points per cloud (2000)")
-    evaluate.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
-    evaluate.add_argument("--out", default="evaluation", help="output folder (./evaluation)")
-    evaluate.add_argument("--estimator", choices=ESTIMATORS, default=None,
-                          help="minimal-sample estimator (default: each shape's best)")
-    evaluate.add_argument("--normals", choices=evaluation.NORMALS, default="estimated",
-                          help="normals the oriented estimators read (default: estimated)")
-    evaluate.set_defaults(run=_cmd_evaluate)
-    return parser
+    start = time.perf_counter()
+    points = load_points(args.cloud, num_points=args.num_points, seed=args.seed)
+    _progress(start)(f"{args.cloud}: {len(points)} points")
+    # detect prints one line per primitive on stdout: progress, so it goes to stderr.
+    with contextlib.redirect_stdout(sys.stderr):
+        scene = detect(points, args.shapes, min_inliers=args.min_inliers,
+                       threshold=args.threshold, key=args.seed, progress=True)
+    _report_scene(scene, len(points), time.perf_counter() - start, args)
 
 
-def _report_decomposition(result, out):
+def _report_scene(scene, num_points, seconds, args):
+    print(f"{len(scene.shapes)} primitives from {num_points} points in {seconds:.2f} s "
+          f"({len(scene.unassigned)} points unassigned, threshold {scene.threshold:.4g}):")
+    for i, found in enumerate(scene.shapes):
+        _print_model(found.model, f"shape {i}: {len(found.indices)} points,")
+    if args.out:
+        print(f"wrote {scene.save(args.out)}")
+    if args.json:
+        _write_json(args.json, scene.to_dict())
+    if args.mesh:
+        if not scene.shapes:
+            raise ValueError(f"--mesh {args.mesh}: no primitive was found, no mesh to write")
+        _write_mesh(args.mesh, [d.model.to_mesh() for d in scene.shapes])
+
+
+def _report_decomposition(result, args, out):
     print(result.summary())
+    for i, part in enumerate(result.parts):
+        _print_model(part.model, f"part {i}:")
     if out:
         folder = result.save(out)
         print(f"wrote {folder / 'parts.json'}, {folder / 'decomposition.glb'}, "
               f"{folder / 'preview.png'}")
+    if args.json:
+        _write_json(args.json, result.to_dict())
+    if args.mesh:
+        _write_mesh(args.mesh, result.to_scene().geometry.values())
+    if not (out or args.json or args.mesh):
+        print("jaxfit: nothing written (give --out DIR, --json OUT or --mesh OUT)",
+              file=sys.stderr)
 
 
 def _cmd_decompose(args):
@@ -250,17 +255,45 @@ def _cmd_decompose(args):
 
     result = decompose(args.input, gain=args.gain, min_points=args.min_points,
                        num_points=args.num_points, key=args.seed, progress=True)
-    _report_decomposition(result, args.out)
+    _report_decomposition(result, args, args.out)
     if args.urdf or args.mjcf:
-        from .io.sim import write_mjcf, write_urdf
-
-        models = [part.model for part in result.parts]
         options = {"name": args.name, "density": args.density, "scale": args.scale}
         out = Path(args.out)
         if args.urdf:
-            print(f"wrote {write_urdf(models, out / f'{args.name}.urdf', **options)}")
+            print(f"wrote {result.to_urdf(out / f'{args.name}.urdf', **options)}")
         if args.mjcf:
-            print(f"wrote {write_mjcf(models, out / f'{args.name}.xml', **options)}")
+            print(f"wrote {result.to_mjcf(out / f'{args.name}.xml', **options)}")
+
+
+def _cmd_demo(args):
+    if args.shape is None:
+        return _demo_decomposition(args)
+    from .evaluation.synthetic import demo_cloud
+
+    if args.object is not None:
+        raise ValueError("--object picks the object to decompose; with --shape the demo "
+                         "fits one primitive instead: give one of them")
+    points, truth, _ = demo_cloud(args.shape, seed=args.seed)
+    print(f"demo: {len(points)} points, half of them uniform outliers, around a known "
+          f"{args.shape}")
+    _print_model(truth, "true")
+    out = Path(args.out) if args.out else None
+    _fit_and_report(points, args, args.json or (out and out / "fit.json"),
+                    args.mesh or (out and out / f"{args.shape}.ply"))
+
+
+def _demo_decomposition(args):
+    from .decomposition import decompose
+    from .evaluation.synthetic import composite
+
+    name = args.object or DEMO_OBJECT
+    points, models, _ = composite(name, seed=args.seed)
+    print(f"demo: a {name} of {len(points)} points sampled from "
+          + ", ".join(m.name for m in models))
+    for model in models:
+        _print_model(model, "true")
+    result = decompose(points, gain=args.gain, key=args.seed, progress=True)
+    _report_decomposition(result, args, args.out)
 
 
 def _cmd_grasp(args):
@@ -269,13 +302,13 @@ def _cmd_grasp(args):
 
     if not (np.isfinite(args.scale) and args.scale > 0):
         raise ValueError(f"--scale must be positive and finite, got {args.scale}")
+    if args.top < 1:
+        raise ValueError(f"--top must be a positive integer, got {args.top}")
     width = 0.085 / args.scale if args.gripper_width is None else args.gripper_width
     gripper = ParallelJaw(
         max_width=width,
         finger_depth=0.47 * width if args.finger_depth is None else args.finger_depth,
         finger_width=0.235 * width if args.finger_width is None else args.finger_width)
-    if args.top < 1:
-        raise ValueError(f"--top must be a positive integer, got {args.top}")
     result = decompose(args.input, num_points=args.num_points, key=args.seed, progress=True)
     print(result.summary())
     found = grasps(result, gripper, key=args.seed, top=args.top)
@@ -288,54 +321,313 @@ def _cmd_grasp(args):
     print(f"wrote {folder / 'grasps.json'}, {folder / 'grasps.png'}")
 
 
-def _demo_decomposition(args):
-    from .decomposition import decompose
-    from .evaluation.synthetic import composite
+def _cmd_batch(args):
+    from . import batch
 
-    points, models, _ = composite(args.object, seed=args.seed)
-    print(f"demo: a {args.object} of {len(points)} points sampled from "
-          + ", ".join(m.name for m in models))
-    for model in models:
-        _print_model(model, "true")
-    result = decompose(points, gain=args.gain, key=args.seed, progress=True)
-    _report_decomposition(result, args.out)
-    for i, part in enumerate(result.parts):
-        _print_model(part.model, f"part {i}:")
+    summary = batch.run_batch(args.inputs, args.out, task=args.task, shapes=args.shape,
+                              workers=args.workers, scheduler=args.scheduler,
+                              num_points=args.num_points, seed=args.seed,
+                              extensions=args.ext, progress=True)
+    print(summary.report())
+    return 0 if summary.num_failed == 0 else 1
 
 
 def _cmd_evaluate(args):
     rows = evaluation.run(args.shape, args.scenario, repeats=args.repeats, count=args.count,
-                        seed=args.seed, normals=args.normals, estimator=args.estimator)
+                          seed=args.seed, normals=args.normals, estimator=args.estimator)
     out = evaluation.write(rows, args.out)
     print(f"{len(rows)} fits; wrote {out / 'runs.csv'}, {out / 'summary.md'} and plots")
+
+
+def _cmd_warmup(args):
+    from .warmup import warmup
+
+    if _cache.compilation_cache_dir() is None:
+        raise ValueError("warmup fills the compilation cache, which is off in this process "
+                         f"(unset {_cache.ENV_SWITCH}=0, or configure JAX's cache)")
+    start = time.perf_counter()
+    warmup(args.shapes, buckets=args.buckets, say=_progress(start))
+    print(f"kernels compiled and stored in {_cache.compilation_cache_dir()} "
+          f"({time.perf_counter() - start:.1f} s)")
+
+
+#: The object ``demo`` decomposes and the folder it writes when none is given.
+DEMO_OBJECT = "mallet"
+DEMO_OUT = "jaxfit-demo"
+
+# ----- the parser ----------------------------------------------------------------------
+
+
+def _version() -> str:
+    import jax
+
+    from . import __version__
+
+    return f"jaxfit {__version__} (jax {jax.__version__})"
+
+
+def _seed(p, what="sampling and fitting"):
+    p.add_argument("--seed", type=int, default=0,
+                   help=f"random seed of the {what}: the same seed gives the same result "
+                        "(default 0)")
+
+
+def _num_points(p):
+    p.add_argument("--num-points", type=int, default=20000, metavar="N",
+                   help="points sampled from a mesh's surface (default 20000; point files "
+                        "are read as stored)")
+
+
+def _outputs(p, what):
+    p.add_argument("--json", metavar="OUT.json", help=f"write {what} as JSON")
+    p.add_argument("--mesh", metavar="OUT",
+                   help=f"write {what} as one mesh ({', '.join(MESH_OUTPUTS)})")
+
+
+def _add_fit(sub):
+    fit = sub.add_parser("fit", help="fit one primitive to a point cloud or mesh file",
+                         description="Fit one primitive to a point cloud or mesh file and "
+                                     "print its parameters and inlier count.")
+    fit.add_argument("cloud", help="input file: .ply .obj .stl .off .glb .gltf .iv .xyz "
+                                   ".txt .csv .crd .pts .npy")
+    _num_points(fit)
+    _fit_options(fit, required=True)
+    _outputs(fit, "the fitted primitive")
+    fit.set_defaults(run=_cmd_fit)
+
+
+def _fit_options(p, required):
+    p.add_argument("--shape", required=required, choices=list(REGISTRY),
+                   help="the primitive to fit")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
+    _seed(p)
+    p.add_argument("--estimator", choices=ESTIMATORS, default=None,
+                   help="minimal-sample estimator (default: the shape's best)")
+
+
+def _add_detect(sub):
+    from .detect import DEFAULT_SHAPES
+
+    detect = sub.add_parser(
+        "detect", help="find several primitives in one scene",
+        description="Find several primitives in one cloud, the best-supported first, "
+                    "until none has --min-inliers points.")
+    detect.add_argument("cloud", help="input file (as for fit)")
+    detect.add_argument("--shapes", nargs="+", default=list(DEFAULT_SHAPES),
+                        choices=list(REGISTRY), metavar="SHAPE",
+                        help="candidate shapes, simplest first (default: "
+                             f"{' '.join(DEFAULT_SHAPES)}; choices: {', '.join(REGISTRY)})")
+    detect.add_argument("--min-inliers", type=int, default=None, metavar="M",
+                        help="smallest primitive worth reporting (default 1%% of the points)")
+    detect.add_argument("--threshold", type=float, default=None,
+                        help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
+    _num_points(detect)
+    _seed(detect)
+    detect.add_argument("--out", metavar="DIR",
+                        help="folder for the scene's files (Scene.save)")
+    _outputs(detect, "the primitives found")
+    detect.set_defaults(run=_cmd_detect)
+
+
+def _add_decompose(sub):
+    decompose = sub.add_parser(
+        "decompose", help="decompose an object into primitives",
+        description="Decompose an object into primitives (the PSDA) and print its parts.")
+    decompose.add_argument("input", help="mesh, point file or Open Inventor .iv model")
+    decompose.add_argument("--gain", type=float, default=0.96,
+                           help="split a box while its children's volume / its volume < "
+                                "gain; nearer 1 splits more (default 0.96)")
+    decompose.add_argument("--min-points", type=int, default=None, metavar="M",
+                           help="smallest part (default 2%% of the points)")
+    _num_points(decompose)
+    _seed(decompose)
+    decompose.add_argument("--out", metavar="DIR",
+                           help="folder for parts.json, decomposition.glb, preview.png")
+    _outputs(decompose, "the parts")
+    decompose.add_argument("--urdf", action="store_true",
+                           help="also write the primitives as a URDF robot, DIR/NAME.urdf")
+    decompose.add_argument("--mjcf", action="store_true",
+                           help="also write them as a MuJoCo model, DIR/NAME.xml")
+    decompose.add_argument("--name", default="object",
+                           help="--urdf/--mjcf: the body's name and file stem (object)")
+    decompose.add_argument("--density", type=float, default=1000.0,
+                           help="--urdf/--mjcf: mass per unit volume in written units (1000)")
+    decompose.add_argument("--scale", type=float, default=1.0,
+                           help="--urdf/--mjcf: multiplies every length (0.001 for a model "
+                                "in millimetres; default 1)")
+    decompose.set_defaults(run=_cmd_decompose)
+
+
+def _add_grasp(sub):
+    grasp = sub.add_parser(
+        "grasp", help="plan parallel-jaw grasps on an object's primitives",
+        description="Decompose an object and plan parallel-jaw grasps on its primitives.")
+    grasp.add_argument("input", help="mesh, point file or Open Inventor .iv model")
+    grasp.add_argument("--out", required=True, metavar="DIR",
+                       help="folder for grasps.json and grasps.png")
+    grasp.add_argument("--gripper-width", type=float, default=None,
+                       help="widest opening in the model's units (default 0.085 / --scale)")
+    grasp.add_argument("--finger-depth", type=float, default=None,
+                       help="finger length along the approach (default 0.47 x the width)")
+    grasp.add_argument("--finger-width", type=float, default=None,
+                       help="finger pad width (default 0.235 x the width)")
+    grasp.add_argument("--scale", type=float, default=1.0,
+                       help="metres per model unit for the default gripper (0.001 for "
+                            "millimetres; default 1)")
+    grasp.add_argument("--top", type=int, default=10, help="grasps kept, best first (10)")
+    _num_points(grasp)
+    _seed(grasp)
+    grasp.set_defaults(run=_cmd_grasp)
+
+
+def _add_batch(sub):
+    from .batch import TASKS
+
+    batch = sub.add_parser(
+        "batch", help="run fit, detect or decompose on every model of a dataset",
+        description="Run one task on every model of a dataset: one output folder per "
+                    "model, summary.csv and summary.json in --out. A failed model is "
+                    "recorded and the run goes on; a rerun skips the models already done.")
+    batch.add_argument("inputs", nargs="+", metavar="INPUT",
+                       help="model files, folders (searched recursively by extension), "
+                            "globs ('scans/**/*.ply') or manifests (.jsonl, or .csv with a "
+                            "'path' column)")
+    batch.add_argument("--out", required=True, metavar="DIR",
+                       help="output folder: DIR/MODEL/ per model, DIR/summary.csv, "
+                            "DIR/summary.json")
+    batch.add_argument("--task", choices=TASKS, default="decompose",
+                       help="what to do with each model (default decompose)")
+    batch.add_argument("--shape", nargs="+", choices=list(REGISTRY), metavar="SHAPE",
+                       default=None,
+                       help="fit: the one primitive to fit (required); detect, decompose: "
+                            "the candidate shapes (default: theirs)")
+    batch.add_argument("--workers", type=int, default=1, metavar="N",
+                       help="local worker processes, each keeping its compiled kernels "
+                            "(default 1; 0 runs in this process); with --scheduler local "
+                            "the LocalCluster's workers")
+    batch.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                       help="run on Dask distributed: 'local' (a LocalCluster of --workers "
+                            "processes) or a scheduler address tcp://HOST:PORT; needs "
+                            "pip install 'jaxfit[cluster]'")
+    batch.add_argument("--ext", nargs="+", default=None, metavar="EXT",
+                       help="extensions a folder or glob is searched for, e.g. .obj .ply "
+                            "(default: every format jaxfit reads)")
+    _num_points(batch)
+    _seed(batch)
+    batch.set_defaults(run=_cmd_batch)
+
+
+def _add_demo(sub):
+    demo = sub.add_parser(
+        "demo", help="decompose a built-in object (no input needed); with --shape, fit one "
+                     "primitive among outliers instead",
+        description="Decompose a built-in object made of known primitives, or with "
+                    "--shape fit one primitive among outliers; no input file needed.")
+    demo.add_argument("--object", default=None, choices=COMPOSITES,
+                      help=f"the built-in object to decompose (default {DEMO_OBJECT})")
+    demo.add_argument("--out", default=None, metavar="DIR",
+                      help=f"output folder (default ./{DEMO_OUT} for a decomposition; "
+                           "with --shape, DIR/fit.json and DIR/SHAPE.ply)")
+    demo.add_argument("--gain", type=float, default=0.96,
+                      help="the decomposition's split threshold, as in decompose (0.96)")
+    _fit_options(demo, required=False)
+    _outputs(demo, "the fit or the parts")
+    demo.set_defaults(run=_cmd_demo)
+
+
+def _add_evaluate(sub):
+    evaluate = sub.add_parser(
+        "evaluate", help="the thesis's RN/RNIM/SN/SNIM evaluation: CSV, tables and plots",
+        description="The thesis's evaluation: fits on synthetic clouds per scenario and "
+                    "noise level, written as CSV, tables and plots.")
+    evaluate.add_argument("--shape", nargs="+", default=list(evaluation.SHAPES),
+                          choices=list(REGISTRY), help="primitives to evaluate (default all)")
+    evaluate.add_argument("--scenario", nargs="+", default=list(scenarios.SCENARIOS),
+                          choices=scenarios.SCENARIOS, help="scenarios (default all)")
+    evaluate.add_argument("--repeats", type=int, default=10, help="clouds per level (10)")
+    evaluate.add_argument("--count", type=int, default=2000, help="points per cloud (2000)")
+    evaluate.add_argument("--seed", type=int, default=0,
+                          help="seed of the first cloud; cloud i uses seed + i (default 0)")
+    evaluate.add_argument("--out", default="evaluation", metavar="DIR",
+                          help="output folder (./evaluation)")
+    evaluate.add_argument("--estimator", choices=ESTIMATORS, default=None,
+                          help="minimal-sample estimator (default: each shape's best)")
+    evaluate.add_argument("--normals", choices=evaluation.NORMALS, default="estimated",
+                          help="normals the oriented estimators read (default: estimated)")
+    evaluate.set_defaults(run=_cmd_evaluate)
+
+
+def _add_warmup(sub):
+    warmup = sub.add_parser(
+        "warmup", help="compile and store the kernels now, so later runs start warm",
+        description="Compile jaxfit's kernels into the compilation cache (once per "
+                    "machine and jaxfit version), so that later runs start warm.")
+    warmup.add_argument("--shapes", nargs="+", default=None, choices=list(REGISTRY),
+                        metavar="SHAPE",
+                        help=f"primitives to compile for (default all: {', '.join(REGISTRY)})")
+    warmup.add_argument("--buckets", nargs="+", type=int, default=None, metavar="N",
+                        help="point buckets (powers of two a cloud is padded to) to compile "
+                             "for (default: 1024 16384, the decomposition's parts and "
+                             "clouds of 8,193-16,384 points)")
+    warmup.set_defaults(run=_cmd_warmup)
+
+
+def _parser():
+    parser = _Parser(prog="jaxfit", description=DESCRIPTION, epilog=EPILOG,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=_version())
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_fit, _add_detect, _add_decompose, _add_grasp, _add_batch, _add_demo,
+                _add_evaluate, _add_warmup):
+        add(sub)
+    return parser
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: the reader of a pipe left (``jaxfit ... | head``), and
+    Python's final flush must not print a BrokenPipeError."""
+    with contextlib.suppress(OSError, ValueError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status: 0, 2 for bad input (a message
     naming it), 1 for any other error (its one-line message; the traceback with
-    JAXFIT_DEBUG=1), 130 when interrupted."""
-    args = _parser().parse_args(argv)
+    JAXFIT_DEBUG=1) or a batch with failed models, 130 when interrupted."""
     try:
+        args = _parser().parse_args(argv)
         _check_outputs(args)
-        if (notice := _cache.compile_notice()) is not None:
+        # (batch: its workers compile, its progress says so; warmup: compiling is its job)
+        notice = None if args.command in ("batch", "warmup") else _cache.compile_notice()
+        if notice is not None:
             print(notice, file=sys.stderr, flush=True)
-        args.run(args)
+        status = args.run(args) or 0
+        sys.stdout.flush()  # a closed pipe shows here, not in Python's exit
+    except SystemExit as exit_:  # --help, --version, a usage error
+        with contextlib.suppress(BrokenPipeError):
+            sys.stdout.flush()
+        return exit_.code if isinstance(exit_.code, int) else 2
     except BrokenPipeError:  # `jaxfit ... | head`: the reader left; say nothing more
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _quiet_stdout()
         return 1
     except KeyboardInterrupt:
         print("jaxfit: interrupted", file=sys.stderr)
         return 130
     except (ValueError, OSError) as err:  # bad input or an unusable file: a message
-        print(f"jaxfit: error: {err}", file=sys.stderr)
+        print(f"jaxfit: error: {_one_line(err)}", file=sys.stderr)
         return 2
     except Exception as err:  # anything else (a MemoryError, a bug): still no traceback
         if os.environ.get(DEBUG_ENV):
             raise
-        print(f"jaxfit: error: {type(err).__name__}: {err} (set {DEBUG_ENV}=1 for the "
-              "traceback)", file=sys.stderr)
+        print(f"jaxfit: error: {type(err).__name__}: {_one_line(err)} (set {DEBUG_ENV}=1 "
+              "for the traceback)", file=sys.stderr)
         return 1
-    return 0
+    return status
+
+
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
 
 
 if __name__ == "__main__":
