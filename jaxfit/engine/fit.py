@@ -13,7 +13,9 @@ from ..shapes import Model
 from .cloud import Cloud, estimate_normals, prepare
 from .loop import search
 from .options import FitOptions
+from .refine import FINAL_MIN_POINTS, final_refit
 from .result import FitResult
+from .scoring import MSAC
 
 
 def fit(points, shape, *, normals=None, threshold: float | None = None, key=0,
@@ -106,6 +108,8 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     estimate_normals(prepared)
 
     thetas, drawn, status = search(cls, checked, prepared, key, seed, which)
+    if checked.refine and getattr(checked, "final_refit", True):
+        thetas = refitted(cls, prepared, thetas, checked)
     for j, (i, cloud) in enumerate(zip(which, prepared, strict=True)):
         try:
             results[i] = result(cls, cloud, thetas[j], drawn[j], status[j], checked)
@@ -140,6 +144,21 @@ def result(cls: type[Model], cloud: Cloud, theta, drawn, status,
     cost = float(np.sum(np.minimum(distance**2, cloud.threshold**2)))
     return FitResult(model, inliers, int(inliers.sum()), cost, int(drawn), status,
                      cloud.threshold)
+
+
+def refitted(cls: type[Model], clouds: list[Cloud], thetas, options: FitOptions):
+    """thetas (C, P) (normalised frames) after ``refine.final_refit`` on all points of
+    each cloud larger than ``FINAL_MIN_POINTS`` (LO saw every point of the others), for
+    the MSAC scorer (the least-squares fit on the inliers is MSAC's own optimum)."""
+    if type(options.scorer) is not MSAC:
+        return thetas
+    out = np.array(thetas, np.float64)
+    for j, cloud in enumerate(clouds):
+        if len(cloud.points) > FINAL_MIN_POINTS and np.all(np.isfinite(out[j])):
+            out[j] = final_refit(cls, out[j], cloud.unit, cloud.threshold / cloud.scale,
+                                 np.asarray(cloud.unit_bounds().values, np.float64),
+                                 cloud.normals if cloud.gated else None)[0]
+    return out
 
 
 def agreeing(cls: type[Model], theta, cloud: Cloud):

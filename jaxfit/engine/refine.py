@@ -13,6 +13,7 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..shapes import Model
 from .scoring import CHUNK, DEFAULT_SCORER, Scorer, score_one
@@ -171,3 +172,158 @@ def _refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_round
 
 refine_theta = partial(jax.jit, static_argnames=("cls", "max_rounds", "steps", "rows",
                                                  "scorer"))(_refine_theta)
+
+
+# ----- the final refit (host NumPy, float64) ------------------------------------------
+
+#: Clouds of at most this many points skip the final refit: LO's steps already saw every
+#: one of their points (``lo_rows`` >= n), so it would repeat that fit (docs/refit.md).
+FINAL_MIN_POINTS = LO_POINTS
+#: Gauss-Newton steps of the final refit: it starts from LO's fit on LO_POINTS points, a
+#: few noise widths from the optimum, where Gauss-Newton converges in one or two steps.
+FINAL_STEPS = 2
+#: Damped retries of a step whose candidate raised the cost or left the bounds.
+FINAL_RETRIES = 3
+#: The refit stops once a step lowers the MSAC cost by less than this fraction.
+FINAL_GAIN = 1e-7
+#: Points per chunk of the final refit's sums: its memory is a few (FINAL_CHUNK, P)
+#: float64 arrays, whatever the cloud's size.
+FINAL_CHUNK = 1 << 16
+#: Step of the forward differences that give the residual's Jacobian (unit frame).
+FINAL_STEP = 1e-7
+
+
+def _unit(v):
+    """Rows of v (..., 3) scaled to unit length (zero rows map to +z, as ``safe_normalize``)."""
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.where(n > 0, v / np.where(n > 0, n, 1.0), np.array([0.0, 0.0, 1.0]))
+
+
+def _polar(theta):
+    """A box's theta with its normals (rows of theta[:9]) replaced by the nearest
+    orthogonal matrix (the polar factor, as ``Box.canonicalize``)."""
+    u, _, vt = np.linalg.svd(theta[:9].reshape(3, 3))
+    return np.concatenate([(u @ vt).reshape(-1), theta[9:]])
+
+
+def _cone(theta):
+    from ..shapes.cone import MIN_ANGLE
+
+    return np.concatenate([theta[:3], _unit(theta[3:6]), np.clip(theta[6:], MIN_ANGLE,
+                                                                 np.pi / 2 - MIN_ANGLE)])
+
+
+#: NumPy float64 twins of the shapes' ``canonicalize`` (which are JAX-only): the final
+#: refit's projection back onto valid parameters after a step. A shape missing here (and
+#: without a ``canonicalize_host`` of its own) is not refitted.
+HOST_CANONICAL = {
+    "plane": lambda t: np.concatenate([_unit(t[:3]), t[3:] / max(np.linalg.norm(t[:3]), 1e-300)]),
+    "sphere": lambda t: np.concatenate([t[:3], np.abs(t[3:])]),
+    "cylinder": lambda t: np.concatenate([t[:3], _unit(t[3:6]), np.abs(t[6:])]),
+    "cone": _cone,
+    "box": _polar,
+}
+
+
+def host_canonical(cls: type[Model]):
+    """theta (P,) -> theta (P,): the NumPy projection of ``cls`` onto valid parameters,
+    or None when it has none (then the final refit leaves its fits alone)."""
+    return getattr(cls, "canonicalize_host", None) or HOST_CANONICAL.get(cls.name)
+
+
+def host_admits(cls: type[Model], bounds: np.ndarray, theta) -> bool:
+    """``Bounds.admits`` in NumPy: whether theta (P,) honours one cloud's bound values
+    (7,) (``Bounds.values``: radius low, high, axis (3,), axis cos, normal cos)."""
+    if cls.radius_index is not None and not bounds[0] <= theta[cls.radius_index] <= bounds[1]:
+        return False
+    if cls.axis_index is not None:
+        axis = theta[cls.axis_index:cls.axis_index + 3]
+        return bool(abs(axis @ bounds[2:5]) >= bounds[5])
+    return True
+
+
+def _chunks(n: int):
+    return [slice(s, min(s + FINAL_CHUNK, n)) for s in range(0, n, FINAL_CHUNK)]
+
+
+def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None):
+    """MSAC cost () of theta (P,) over points (N, 3), the loop's measure (a point gated
+    out on its normal costs t^2), and with ``canonical`` the normal equations of the
+    least-squares fit on its inliers: J^T J (P, P) and J^T r (P,), J by forward
+    differences through ``canonical``. One pass, ``FINAL_CHUNK`` points at a time, in
+    float64 (the chunk's columns contiguous: a boolean gather of (N, 3) rows had cost as
+    much as the differences)."""
+    t2, cost, size = threshold * threshold, 0.0, theta.size
+    jtj, jtr = np.zeros((size, size)), np.zeros(size)
+    moved = [] if canonical is None else [canonical(theta + FINAL_STEP * e)
+                                          for e in np.eye(size)]
+    for part in _chunks(len(points)):
+        block = np.ascontiguousarray(points[part].T)  # (3, n)
+        q = tuple(block)
+        if normals is None:
+            r = cls.theta_residual(theta, q, np)
+            r2 = r * r
+        else:
+            r, slope = cls.residual_slope(theta, q, tuple(normals[part].T), np)
+            r2 = np.where(np.abs(slope) >= normal_cos, r * r, t2)
+        inside = r2 < t2
+        cost += float(np.sum(np.where(inside, r2, t2)))
+        if moved:
+            keep = np.flatnonzero(inside)
+            qi, ri = tuple(block.take(keep, axis=1)), r.take(keep)
+            jac = np.empty((size, len(keep)))  # (P, M): each row one contiguous write
+            for k, m in enumerate(moved):
+                np.subtract(cls.theta_residual(m, qi, np), ri, out=jac[k])
+            jtj += jac @ jac.T
+            jtr += jac @ ri
+    jtj /= FINAL_STEP * FINAL_STEP
+    jtr /= FINAL_STEP
+    return cost, jtj, jtr
+
+
+def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
+                normals=None, steps: int = FINAL_STEPS):
+    """A least-squares refit of theta (P,) on all the inliers of points (N, 3), in float64
+    NumPy (no compiled program): Gauss-Newton steps on the residuals of the current
+    inliers (Levenberg-damped on a refusal), each kept only if the MSAC cost over all
+    points does not rise and the bounds hold.
+
+    LO refines on at most LO_POINTS points (in the kernels' float32), so its accuracy
+    stops growing with N; this sums over every point, ``FINAL_CHUNK`` at a time.
+    ``bounds``: one cloud's ``Bounds.values`` (7,) in the points' frame, or None;
+    with ``normals`` (N, 3), inliers are gated on them at the bounds' normal cosine.
+    ``points`` are the cloud in the normalised frame, where theta's parameters are O(1).
+    theta is first projected in float64 (``host_canonical``: the kernels' float32 axis
+    is unit only to ~1e-7, the differences' own step, and had made the Jacobian noise).
+    Returns (theta (P,), its MSAC cost, the cost of the projected theta given); theta
+    unchanged when it is not finite or the shape has no NumPy projection.
+    """
+    theta = np.asarray(theta, np.float64)
+    canonical = host_canonical(cls)
+    if not np.all(np.isfinite(theta)) or canonical is None:
+        return theta, np.inf, np.inf
+    args = (points, threshold, normals, None if normals is None else float(bounds[6]))
+    theta = canonical(theta)
+    cost, jtj, jtr = _evaluate(cls, theta, *args, canonical=canonical)
+    start, damping = cost, 0.0
+    for step_index in range(steps):
+        last = step_index == steps - 1  # (its normal equations would go unused)
+        diag = np.diag(np.diag(jtj))
+        for _ in range(FINAL_RETRIES):
+            # The pseudo-inverse gives gauge directions (an axis's length, a cylinder's
+            # centre along its axis) no step, where a plain solve would amplify noise.
+            step = -np.linalg.pinv(jtj + damping * diag, rcond=1e-12, hermitian=True) @ jtr
+            candidate = canonical(theta + step)
+            if np.all(np.isfinite(candidate)) and (bounds is None
+                                                   or host_admits(cls, bounds, candidate)):
+                found = _evaluate(cls, candidate, *args, canonical=None if last else canonical)
+                if found[0] <= cost:
+                    break
+            damping = max(10.0 * damping, 1e-3)
+        else:
+            break  # every retry refused: theta stays where it was
+        gain = cost - found[0]
+        theta, (cost, jtj, jtr), damping = candidate, found, 0.1 * damping
+        if gain <= FINAL_GAIN * cost:
+            break
+    return theta, cost, start
