@@ -7,6 +7,7 @@ import pytest
 import trimesh
 
 from jaxfit.io import SUPPORTED_EXTENSIONS, LoadError, load_points
+from jaxfit.io.points import load_cloud
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -301,3 +302,67 @@ def test_batched_model_dicts_round_trip_and_rescale_per_element(shape):
                                        getattr(single, name), rtol=1e-15, atol=1e-15)
     with pytest.raises((TypeError, ValueError)):
         batched.distance(np.zeros((4, 3)))
+
+
+# --- normals kept: load_cloud -------------------------------------------------------------
+
+
+def unit_rows(pts):
+    return pts / np.linalg.norm(pts, axis=1, keepdims=True)
+
+
+def test_unnamed_unit_columns_4_to_6_are_normals(tmp_path, pts):
+    normals = unit_rows(pts[::-1])
+    np.savetxt(tmp_path / "a.xyz", np.hstack([pts, normals]), fmt="%.6f")  # 6 digits
+    out, found = load_cloud(tmp_path / "a.xyz")
+    np.testing.assert_allclose(out, pts, atol=1e-6)
+    np.testing.assert_allclose(found, normals, atol=1e-6)
+    assert load_cloud(tmp_path / "a.xyz", with_normals=False)[1] is None
+    np.save(tmp_path / "a.npy", np.hstack([pts, normals, pts[:, :1]]))  # 7 columns
+    np.testing.assert_array_equal(load_cloud(tmp_path / "a.npy")[1], normals)
+    # load_points reads the points as before
+    np.testing.assert_array_equal(load_points(tmp_path / "a.npy"), pts)
+
+
+def test_colours_and_intensities_are_not_taken_for_normals(tmp_path, pts):
+    colours = np.random.default_rng(0).integers(0, 256, size=(len(pts), 3))
+    np.savetxt(tmp_path / "rgb.xyz", np.hstack([pts, colours]))
+    assert load_cloud(tmp_path / "rgb.xyz")[1] is None
+    text = f"{len(pts)}\n" + "\n".join(fmt(p) + " 0 255 0 0" for p in pts)  # .pts layout
+    assert load_cloud(write(tmp_path / "a.pts", text))[1] is None
+    np.savetxt(tmp_path / "three.csv", pts, delimiter=",")
+    assert load_cloud(tmp_path / "three.csv")[1] is None
+
+
+def test_named_normal_columns_are_read_wherever_they_are(tmp_path, pts):
+    normals = 2.0 * unit_rows(pts[::-1])  # not unit: named columns are taken as they are
+    data = np.hstack([pts, np.ones((len(pts), 1)), normals])
+    text = "x,y,z,intensity,nx,ny,nz\n" + "\n".join(fmt(r, ",") for r in data)
+    np.testing.assert_array_equal(load_cloud(write(tmp_path / "a.csv", text))[1], normals)
+    np.savetxt(tmp_path / "b.txt", data[:, [0, 1, 2, 4, 5, 6, 3]],
+               header="x y z normal_x normal_y normal_z i")  # a commented header
+    np.testing.assert_allclose(load_cloud(tmp_path / "b.txt")[1], normals, rtol=1e-15)
+
+
+def test_a_ply_cloud_keeps_its_vertex_normals(tmp_path, pts):
+    normals = unit_rows(pts)
+    header = ["ply", "format ascii 1.0", f"element vertex {len(pts)}"]
+    header += [f"property double {c}" for c in ("x", "y", "z", "nx", "ny", "nz")]
+    rows = [fmt(r) for r in np.hstack([pts, normals])]
+    path = write(tmp_path / "cloud.ply", "\n".join(header + ["end_header"] + rows) + "\n")
+    out, found = load_cloud(path)
+    np.testing.assert_array_equal(out, pts)
+    np.testing.assert_array_equal(found, normals)
+
+
+def test_a_mesh_gives_the_normals_of_the_faces_its_points_lie_on(tmp_path):
+    path = tmp_path / "box.stl"
+    trimesh.creation.box(extents=BOX_EXTENTS).export(path)
+    out, normals = load_cloud(path, num_points=2000, seed=1)
+    np.testing.assert_array_equal(out, load_points(path, num_points=2000, seed=1))
+    # Outward axis normals, on the face each point lies on.
+    axis = np.argmax(np.abs(normals), axis=1)
+    np.testing.assert_allclose(np.abs(normals).max(axis=1), 1.0)
+    rows = np.arange(len(out))
+    np.testing.assert_allclose(np.abs(out[rows, axis]), BOX_EXTENTS[axis] / 2, atol=1e-9)
+    assert (np.sign(normals[rows, axis]) == np.sign(out[rows, axis])).all()
