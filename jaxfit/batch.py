@@ -262,7 +262,7 @@ def _fit(source: str, folder: Path, options: dict) -> dict:
     (shape,) = options["shapes"]
     result = fit(points, shape, key=options["seed"])
     with replacing(folder / "fit.json") as path:
-        path.write_text(json.dumps(_fit_dict(result), indent=1))
+        path.write_text(json.dumps(result.to_dict(), indent=1))
     with replacing(folder / "model.ply") as path:
         result.model.to_mesh().export(path)
     inside = np.asarray(result.model.distance(points[result.inliers]))
@@ -271,20 +271,15 @@ def _fit(source: str, folder: Path, options: dict) -> dict:
             "mean_distance": float(inside.mean()) if inside.size else None}
 
 
-def _fit_dict(result):
-    if hasattr(result, "to_dict"):  # DEV: until FitResult.to_dict lands
-        return result.to_dict()
-    return {"model": result.model.to_dict(), "num_inliers": result.num_inliers,
-            "num_points": int(result.inliers.size)}
-
-
 def _detect(source: str, folder: Path, options: dict) -> dict:
-    """The scene's files (``Scene.save``); measures over the points detections took."""
+    """scene.json, points.npy, scene.glb, preview.png (``Scene.save``; the file's own
+    normals are used where it has them); measures over the points detections took."""
     from .detect import DEFAULT_SHAPES, detect
-    from .io import load_points
+    from .io.inputs import as_cloud
 
-    points = load_points(source, num_points=options["num_points"], seed=options["seed"])
-    scene = detect(points, options["shapes"] or DEFAULT_SHAPES, key=options["seed"])
+    points, normals = as_cloud(source, num_points=options["num_points"], seed=options["seed"])
+    scene = detect(points, options["shapes"] or DEFAULT_SHAPES, normals=normals,
+                   key=options["seed"])
     scene.save(folder)
     distances = [np.asarray(d.model.distance(points[d.indices])) for d in scene.shapes]
     taken = np.concatenate(distances) if distances else np.empty(0)

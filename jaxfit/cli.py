@@ -155,16 +155,6 @@ def _print_model(model, title):
         print(f"  {name:<11} {text}")
 
 
-def _fit_payload(result) -> dict:
-    """The JSON of a fit: ``FitResult.to_dict()``."""
-    if hasattr(result, "to_dict"):  # DEV: until FitResult.to_dict lands
-        return result.to_dict()
-    return {"model": result.model.to_dict(), "num_inliers": result.num_inliers,
-            "num_points": int(result.inliers.size), "cost": result.cost,
-            "threshold": result.threshold, "num_hypotheses": result.num_hypotheses,
-            "status": result.status.value}
-
-
 def _fit_and_report(points, args, json_path=None, mesh_path=None):
     import jaxfit
 
@@ -178,7 +168,7 @@ def _fit_and_report(points, args, json_path=None, mesh_path=None):
     print(f"hypotheses  {result.num_hypotheses} ({result.status.value}), "
           f"{seconds:.3f} s including compilation")
     if json_path:
-        _write_json(json_path, _fit_payload(result))
+        _write_json(json_path, result.to_dict())
     if mesh_path:
         _write_mesh(mesh_path, [result.model.to_mesh()])
     return result
@@ -206,15 +196,17 @@ def _cmd_fit(args):
 
 def _cmd_detect(args):
     from .detect import detect
-    from .io import load_points
+    from .io.inputs import as_cloud
 
     start = time.perf_counter()
-    points = load_points(args.cloud, num_points=args.num_points, seed=args.seed)
-    _progress(start)(f"{args.cloud}: {len(points)} points")
+    points, normals = as_cloud(args.cloud, num_points=args.num_points, seed=args.seed)
+    _progress(start)(f"{args.cloud}: {len(points)} points"
+                     + (", normals from the file" if normals is not None else ""))
     # detect prints one line per primitive on stdout: progress, so it goes to stderr.
     with contextlib.redirect_stdout(sys.stderr):
         scene = detect(points, args.shapes, min_inliers=args.min_inliers,
-                       threshold=args.threshold, key=args.seed, progress=True)
+                       threshold=args.threshold, normals=normals, key=args.seed,
+                       progress=True)
     _report_scene(scene, len(points), time.perf_counter() - start, args)
 
 
@@ -230,7 +222,9 @@ def _report_scene(scene, num_points, seconds, args):
     if args.mesh:
         if not scene.shapes:
             raise ValueError(f"--mesh {args.mesh}: no primitive was found, no mesh to write")
-        _write_mesh(args.mesh, [d.model.to_mesh() for d in scene.shapes])
+        with replacing(args.mesh) as part:
+            scene.to_trimesh().export(part)
+        print(f"wrote {args.mesh}")
 
 
 def _report_decomposition(result, args, out):
@@ -605,8 +599,10 @@ def main(argv=None) -> int:
         status = args.run(args) or 0
         sys.stdout.flush()  # a closed pipe shows here, not in Python's exit
     except SystemExit as exit_:  # --help, --version, a usage error
-        with contextlib.suppress(BrokenPipeError):
+        try:
             sys.stdout.flush()
+        except BrokenPipeError:
+            _quiet_stdout()
         return exit_.code if isinstance(exit_.code, int) else 2
     except BrokenPipeError:  # `jaxfit ... | head`: the reader left; say nothing more
         _quiet_stdout()

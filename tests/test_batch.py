@@ -191,3 +191,25 @@ def test_local_cluster_of_two_workers_and_local_processes_give_the_same_summary(
     # Resumed on the cluster: nothing but the failed model runs again.
     again = run_batch([models], tmp_path / "dask", scheduler="local", **options)
     assert again.num_reused == 3
+
+
+@pytest.mark.slow
+def test_detect_and_decompose_tasks_write_their_folders(tmp_path):
+    from jaxfit.evaluation.synthetic import composite, scene
+
+    models = tmp_path / "models"
+    models.mkdir()
+    np.save(models / "scene.npy", scene(200, objects=["sphere", "lying_cylinder"],
+                                        count=3000)[0])  # test_detect's scene
+    found = run_batch([models], tmp_path / "detect", task="detect", workers=0)
+    row = found.rows[0]
+    assert row["status"] == "ok" and row["parts"] >= 3 and "plane:" in row["kinds"]
+    assert 0.8 < row["inlier_fraction"] <= 1 and row["mean_distance"] > 0
+    assert {"scene.json", "scene.glb", "points.npy", "status.json"} <= {
+        p.name for p in (tmp_path / "detect" / "scene").iterdir()}
+    np.save(models / "scene.npy", composite("lollipop", count=4000, seed=0)[0])
+    parts = run_batch([models], tmp_path / "decompose", task="decompose", workers=0)
+    row = parts.rows[0]
+    assert row["status"] == "ok" and row["parts"] >= 2 and row["inlier_fraction"] == 1.0
+    assert {"parts.json", "decomposition.glb", "preview.png"} <= {
+        p.name for p in (tmp_path / "decompose" / "scene").iterdir()}

@@ -138,3 +138,148 @@ def test_a_first_run_says_it_compiles_and_a_second_does_not(tmp_path):
                          env={**env, "JAXFIT_CACHE": "0"}, capture_output=True, text=True,
                          timeout=300)
     assert "the compilation cache is off" in off.stderr
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("the work started")
+
+
+def test_every_bad_output_path_fails_at_once_in_one_line(tmp_path, capsys, monkeypatch):
+    """Each command's output paths are checked before any work: rc 2 and one line on
+    stderr naming the flag (and, for a bad extension, the formats that work)."""
+    import importlib
+
+    import jaxfit
+
+    for module, name in ((jaxfit, "fit"), (jaxfit, "decomposition.decompose"),
+                         (jaxfit, "detect.detect")):
+        *path, attribute = name.split(".")
+        target = importlib.import_module(".".join(["jaxfit", *path])) if path else module
+        monkeypatch.setattr(target, attribute, _never)
+    cloud = tmp_path / "cloud.npy"
+    np.save(cloud, np.zeros((10, 3)))
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    missing = tmp_path / "missing" / "x.json"
+    c = str(cloud)
+    cases = [
+        (["fit", c, "--shape", "plane", "--json", str(tmp_path / "x.txt")],
+         r"--json .*unsupported extension '.txt'; use one of .json"),
+        (["fit", c, "--shape", "plane", "--mesh", str(tmp_path / "m.gltf")],
+         r"--mesh .*'.gltf'; use one of .ply, .stl, .obj, .off, .glb"),
+        (["detect", c, "--out", str(a_file)], "--out .* is a file, not a folder"),
+        (["detect", c, "--json", str(missing)], "--json .* does not exist"),
+        (["detect", c, "--mesh", str(tmp_path)], "--mesh .* is a folder"),
+        (["decompose", c, "--json", str(tmp_path)], "--json .* is a folder"),
+        (["decompose", c, "--urdf"], "--urdf and --mjcf write into the --out folder"),
+        (["demo", "--json", str(missing)], "--json .* does not exist"),
+        (["demo", "--out", str(a_file)], "--out .* is a file"),
+        (["demo", "--shape", "sphere", "--out", str(a_file)], "--out .* is a file"),
+        (["demo", "--shape", "sphere", "--object", "lamp"], "give one of them"),
+        (["grasp", c, "--out", str(a_file)], "--out .* is a file"),
+        (["evaluate", "--out", str(a_file)], "--out .* is a file"),
+        (["batch", c, "--out", str(a_file)], "--out .* is a file"),
+        (["fit", c, "--shape", "plane", "--bogus"], "unrecognized arguments: --bogus"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert re.search(message, err) and err.count("\n") == 1, (argv, err)
+
+
+def test_version_and_help_texts(capsys):
+    """--version; every option of every command has a help text, in plain text."""
+    from jaxfit import __version__
+    from jaxfit.cli import _parser
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.startswith(f"jaxfit {__version__} (jax ")
+    commands = _parser()._subparsers._group_actions[0].choices
+    assert {"fit", "detect", "decompose", "grasp", "batch", "demo", "evaluate",
+            "warmup"} <= set(commands)
+    for name, command in commands.items():
+        for action in command._actions:
+            assert action.help, f"{name} {action.option_strings or action.dest}: no help"
+        assert main([name, "--help"]) == 0
+        text = capsys.readouterr().out
+        assert "``" not in text and ":class:" not in text, name
+    assert main(["--help"]) == 0
+    text = capsys.readouterr().out
+    assert "``" not in text and "jaxfit batch" in text
+
+
+def test_demo_fit_honours_out(tmp_path, capsys):
+    """demo --shape S --out DIR writes the fit's JSON and mesh there (it ignored --out)."""
+    assert main(["demo", "--shape", "sphere", "--out", str(tmp_path / "demo")]) == 0
+    assert "wrote" in capsys.readouterr().out
+    payload = json.loads((tmp_path / "demo" / "fit.json").read_text())
+    assert payload["model"]["type"] == "sphere" and payload["num_points"] == 2000
+    assert trimesh.load(tmp_path / "demo" / "sphere.ply").vertices.shape[1] == 3
+
+
+def test_a_closed_pipe_prints_no_traceback():
+    """`jaxfit --help | head -1`: the reader leaves before the output is flushed; no
+    BrokenPipeError reaches the user."""
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-m", "jaxfit", "--help"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # the reader is gone before anything is written
+    err = process.stderr.read().decode()
+    assert process.wait(timeout=120) in (0, 1)
+    assert "BrokenPipeError" not in err and "Traceback" not in err, err
+
+
+def test_warmup_compiles_into_the_cache_or_refuses_without_one(capsys, monkeypatch):
+    from jaxfit import _cache
+
+    assert main(["warmup", "--shapes", "sphere", "--buckets", "2048"]) == 0
+    captured = capsys.readouterr()
+    assert "warmed sphere/2048" in captured.err and "kernels compiled and stored" in captured.out
+    monkeypatch.setattr(_cache, "compilation_cache_dir", lambda: None)
+    assert main(["warmup"]) == 2
+    assert "the compilation cache, which is off" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_detect_writes_its_scene_and_prints_progress_on_stderr(tmp_path, capsys):
+    from jaxfit.evaluation.synthetic import scene
+
+    points, _, _ = scene(200, objects=["sphere", "lying_cylinder"], count=3000)  # test_detect's
+    cloud = tmp_path / "scene.npy"
+    np.save(cloud, points)
+    out, js, mesh = tmp_path / "out", tmp_path / "scene.json", tmp_path / "scene.ply"
+    assert main(["detect", str(cloud), "--out", str(out), "--json", str(js), "--mesh",
+                 str(mesh)]) == 0
+    captured = capsys.readouterr()
+    assert "round 0:" in captured.err and "round 0:" not in captured.out
+    assert re.search(r"\d+ primitives from \d+ points", captured.out)
+    assert {"scene.json", "scene.glb", "points.npy", "preview.png"} <= {
+        p.name for p in out.iterdir()}
+    assert json.loads(js.read_text()) == json.loads((out / "scene.json").read_text())
+    assert len(trimesh.load(mesh).vertices) > 0
+
+
+@pytest.mark.slow
+def test_demo_honours_json_and_mesh_and_decompose_without_out_prints_the_parts(
+        tmp_path, capsys, monkeypatch):
+    import jaxfit.decomposition
+    from jaxfit.decomposition import Decomposition
+
+    js, mesh, out = tmp_path / "demo.json", tmp_path / "demo.glb", tmp_path / "demo"
+    assert main(["demo", "--object", "lollipop", "--out", str(out), "--json", str(js),
+                 "--mesh", str(mesh)]) == 0
+    captured = capsys.readouterr()
+    assert re.search(r"box decomposition: \d+ parts \(\d+\.\d\d s\)", captured.err)
+    assert len(json.loads(js.read_text())["parts"]) >= 2
+    assert (out / "parts.json").is_file() and len(trimesh.load(mesh).geometry) >= 1
+    # decompose without --out, --json or --mesh: the parts on stdout, a note on stderr
+    # (the demo's decomposition stands in for a second one).
+    monkeypatch.setattr(jaxfit.decomposition, "decompose",
+                        lambda *args, **kwargs: Decomposition.load(out))
+    assert main(["decompose", str(out / "points.npy")]) == 0
+    captured = capsys.readouterr()
+    assert re.search(r"\d+ parts from \d+ points", captured.out) and "part 0:" in captured.out
+    assert captured.err.strip().endswith("nothing written (give --out DIR, --json OUT or "
+                                         "--mesh OUT)")
