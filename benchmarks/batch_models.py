@@ -81,6 +81,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", type=int, default=50, help="models generated (50)")
     parser.add_argument("--points", type=int, default=4000, help="points per model (4000)")
+    parser.add_argument("--commit", default=None,
+                        help="the jaxfit commit measured, recorded with the results")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="jaxfit-batch-models-"))
     models = work / "models"
@@ -94,14 +96,15 @@ def main():
         print(label, runs[label], flush=True)
     results = {"task": "decompose", "models": args.models, "points": args.points,
                "cpus": os.cpu_count(), "platform": platform.platform(),
-               "jax": jax.__version__, "runs": runs}
+               "jax": jax.__version__, "commit": args.commit, "runs": runs}
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "batch_models.json").write_text(json.dumps(results, indent=1))
     (RESULTS / "batch_models.md").write_text(
         "# Batch: models per minute (python -m benchmarks.batch_models)\n\n"
         f"decompose on {args.models} composite objects of {args.points} points (.npy), "
         f"{os.cpu_count()} CPUs shared with other work, warm compilation cache, wall time "
-        "including worker start-up.\n\n" + table(results) + "\n")
+        f"including worker start-up; jaxfit commit {args.commit or '?'}.\n\n"
+        + table(results) + "\n")
     print(table(results))
 
 
