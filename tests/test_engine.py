@@ -4,6 +4,7 @@ the test, each one small class)."""
 
 import dataclasses
 
+import jax.monitoring
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from jaxfit.engine import (
     Status,
     StoppingRule,
     UniformSampler,
+    loop,
 )
 from jaxfit.engine.refine import LocalOptimizer
 from jaxfit.engine.scoring import score_one
@@ -196,3 +198,41 @@ def test_every_registered_shape_takes_the_same_options():
     for cls in REGISTRY.values():
         checked = options.check(cls)
         assert checked.estimator in cls.estimators and checked.bounds is not None
+
+
+_lowerings: list | None = None  # while a list, JAX's lowerings to MLIR go in it
+
+
+def _record_lowering(name, seconds, **_):
+    if _lowerings is not None and name.endswith("jaxpr_to_mlir_module_duration"):
+        _lowerings.append(seconds)
+
+
+jax.monitoring.register_event_duration_secs_listener(_record_lowering)
+
+
+def _lowered_fitting(refiner, ahead, monkeypatch):
+    """(the fit of POINTS with ``refiner``, JAX's lowerings during it)."""
+    global _lowerings
+    monkeypatch.setattr(loop, "COMPILE_AHEAD", ahead)
+    _lowerings = []
+    try:
+        result = jaxfit.fit(POINTS, "sphere", refiner=refiner, key=3)
+    finally:
+        found, _lowerings = _lowerings, None
+    return result, len(found)
+
+
+def test_refinement_compiled_ahead_is_the_program_the_loop_runs(monkeypatch):
+    # Refiners no other test uses: their refinement compiles here, the kernel does not.
+    jaxfit.fit(POINTS, "sphere", key=3)  # (the kernel and the keys, as other tests do)
+    ahead, lowered_ahead = _lowered_fitting(LevenbergMarquardt(max_rounds=17), True,
+                                            monkeypatch)
+    _, lowered_after = _lowered_fitting(LevenbergMarquardt(max_rounds=18), False,
+                                        monkeypatch)
+    # The call made ahead (zeros of the kernel's output shapes) lowers the same program
+    # as the loop's call: no second lowering (an uncommitted array had made one).
+    assert lowered_ahead == lowered_after > 0
+    again, lowered_again = _lowered_fitting(LevenbergMarquardt(max_rounds=17), False,
+                                            monkeypatch)
+    assert lowered_again == 0 and same(again, ahead)

@@ -6,6 +6,8 @@ into groups of similar point buckets (``call_groups``), one padded loop each.
 
 from __future__ import annotations
 
+import threading
+
 import jax
 import numpy as np
 
@@ -24,6 +26,52 @@ from .stopping import Status
 #: within SHARE_POINTS (docs/engine.md, "Grouping clouds by bucket").
 SHARE_FACTOR = 2
 SHARE_POINTS = 1 << 16
+#: Whether a group's first refinement is compiled in a thread while the kernel compiles
+#: (XLA's compilation releases the GIL; docs/engine.md, "Compile cost").
+COMPILE_AHEAD = True
+
+_ahead: set = set()  # the refinement calls compiled ahead in this process
+
+
+def refine_ahead(cls: type[Model], options: FitOptions, arrays: dict, rows: int, dtype,
+                 gated: bool, put=lambda a: a):
+    """A started thread that calls ``refine_many`` once on hypotheses of the kernel's
+    output shapes (zeros, costs +inf) with the group's per-slot ``arrays``, so that its
+    program is traced and compiled while the main thread compiles the kernel; None when
+    refinement is off or a call of this signature was already made in this process
+    (then it is compiled, or being compiled, already). Join it before the first real
+    refinement: that call then finds the program ready."""
+    if not (options.refine and COMPILE_AHEAD):
+        return None
+    slots_count, size = arrays["points"].shape[:2]
+    signature = (cls, slots_count, size, np.dtype(dtype).name, rows, gated, options.refiner,
+                 options.scorer, len(jax.local_devices()))
+    if signature in _ahead:
+        return None
+    _ahead.add(signature)
+    # Device arrays as the kernel returns them: a NumPy argument keys another stored
+    # program, and an array committed to a device (or not) another jitted executable.
+    # The kernel's outputs are committed exactly when its keys are (a stored program's
+    # outputs are, and so are the keys it makes). (device_put, not jnp.zeros, which
+    # compiles a program of its own.)
+    device = jax.local_devices()[0] if getattr(arrays["keys"], "committed", False) else None
+    theta = put(jax.device_put(np.zeros((slots_count, cls.lo_starts, cls.num_params), dtype),
+                               device))
+    cost = put(jax.device_put(np.full((slots_count, cls.lo_starts), np.inf, dtype), device))
+
+    def compile_refinement():
+        try:
+            refine_many(cls, theta, cost, arrays["points"], arrays["n"],
+                        arrays["threshold"], arrays["bounds"],
+                        arrays["normals"] if gated else None, rows, options.refiner,
+                        options.scorer)
+        except Exception:  # (the real call raises it, in the caller's thread)
+            _ahead.discard(signature)
+
+    thread = threading.Thread(target=compile_refinement, name="jaxfit-refine-ahead",
+                              daemon=True)
+    thread.start()
+    return thread
 
 
 def call_groups(sizes, devices: int = 1) -> list[list[int]]:
@@ -129,6 +177,7 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
         "bounds": Bounds.stack([clouds[i].unit_bounds() for i in order], dtype),
     }
     every = host if len(devices) == 1 else jax.tree.map(put, host)
+    ahead = refine_ahead(cls, options, every, lo_rows(n_max), dtype, gated, put)
 
     def on(slots_of):
         """The per-slot arrays for the rows ``slots_of`` (None: every slot), placed."""
@@ -160,6 +209,9 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
         raw[where] = np.asarray(cost, np.float64)[:, 0]  # (sliced on the host: see below)
         improved = active & (raw < best_raw)
         best_raw = np.where(improved, raw, best_raw)
+        if ahead is not None:  # the first refinement's program, compiled meanwhile
+            ahead.join()
+            ahead = None
         if options.refine and improved.any():
             polishing = subset_rows(improved, len(devices))
             if polishing is not None:  # (else every slot: the kernel ran on all of them)
