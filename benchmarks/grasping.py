@@ -28,11 +28,14 @@ import numpy as np
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 RESULTS = Path(__file__).resolve().parent / "results"
-#: name -> (file, scale to metres, the axis that points up when the object stands)
+#: name -> (file, scale to metres, the axis that points up when the object stands: an
+#: index, or a direction (3,) where up runs down an axis). The GraspIt mug's opening is at
+#: -Y (its closed, recessed base at +Y): it stands with -Y up (before, +Y stood it on its
+#: rim).
 MODELS = {
     "ycb_soup_can": ("ycb/005_tomato_soup_can_textured.gltf", 1.0, 1),
     "ycb_cracker_box": ("ycb/003_cracker_box_textured.gltf", 1.0, 1),
-    "graspit_mug": ("graspit/mug.iv", 1e-3, 1),
+    "graspit_mug": ("graspit/mug.iv", 1e-3, (0.0, -1.0, 0.0)),
     "graspit_phone": ("graspit/phone.iv", 1e-3, 2),
     "pybullet_mug": ("misc/pybullet_data_objects_mug.obj", 1.0, 2),
     "inventor_duck": ("misc/inventor_mentor_duck.iv", 0.2, 2),
@@ -40,6 +43,21 @@ MODELS = {
 NUM_POINTS = 4000
 TOP = 20
 JAW_METRES = dict(max_width=0.085, finger_depth=0.04, finger_width=0.02)
+
+
+def up_vector(up) -> np.ndarray:
+    """(3,) the unit up direction of a ``MODELS`` entry's up (an axis index or a vector)."""
+    if isinstance(up, int):
+        return np.eye(3)[up]
+    up = np.asarray(up, np.float64)
+    return up / np.linalg.norm(up)
+
+
+def support_of(points, up) -> tuple[np.ndarray, float]:
+    """The floor a standing object rests on, as ``jaxfit.grasps``' ``support``: the plane
+    through the cloud's lowest point along ``up`` (what a robot that sees the table knows)."""
+    up = up_vector(up)
+    return up, float(np.min(np.asarray(points) @ up))
 
 
 def load_mesh(path: Path):
@@ -67,15 +85,19 @@ def convex_pieces(mesh, method: str):
 
 
 def antipodal(mesh, jaw, count: int, *, seed: int = 0, num_points: int = NUM_POINTS,
-              pairs: int = 20000, min_quality: float = 0.8, approaches: int = 8):
+              pairs: int = 20000, min_quality: float = 0.8, approaches: int = 8,
+              support=None):
     """Up to ``count`` grasps sampled on the mesh itself: random pairs of its surface
     points (with the faces' normals) closer than the jaw's opening, best antipodal
     quality first (the lower |normal . closing axis| of the two, at least
     ``min_quality``); for each pair ``approaches`` approach directions around the closing
     axis, origin midway between the points; kept when the palm and finger boxes at the
-    opening (the span plus the clearance on each side) hold none of the points.
-    Returns poses (K, 4, 4), widths (K,) and the seconds it took."""
+    opening (the span plus the clearance on each side) hold none of the points and, with
+    ``support`` (up, height) given, the boxes clear that plane as ``jaxfit.grasps``'
+    do (``clears_support``). Returns poses (K, 4, 4), widths (K,) and the seconds it took."""
     import trimesh
+
+    from jaxfit.grasping import clears_support
 
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -104,7 +126,8 @@ def antipodal(mesh, jaw, count: int, *, seed: int = 0, num_points: int = NUM_POI
             pose[:3, 3] = 0.5 * (points[i[k]] + points[j[k]])
             local = (points - pose[:3, 3]) @ pose[:3, :3]
             if not any(np.any(np.all((local >= lo) & (local <= hi), axis=1))
-                       for lo, hi in boxes):
+                       for lo, hi in boxes) and (support is None or clears_support(
+                           pose[None], [width], jaw, *support)[0]):
                 poses.append(pose)
                 widths.append(width)
                 break
@@ -137,59 +160,73 @@ def main():
     from jaxfit.io.trial import _pieces, lift_trial
 
     RESULTS.mkdir(parents=True, exist_ok=True)
-    lines = ["| model | parts | candidates | grasps | from below | convex pieces "
-             "| on floor: top-1 | top-5 | top-20 | floating: top-1 | top-5 | top-20 "
+    lines = ["| model | parts | candidates | grasps (floor / floating) | from below "
+             "| convex pieces | on floor: top-1 | top-5 | top-20 | floating: top-1 | top-5 "
+             "| top-20 "
              "| plan warm (s) | plan first (s) |", "|---" * 14 + "|"]
     record = {}
     totals = {(floor, k): [] for floor in (True, False) for k in (1, 5, 20)}
-    base_lines = ["| model | grasps | on floor: top-1 | top-5 | top-20 | floating: top-1 "
-                  "| top-5 | top-20 | sampling (s) |", "|---" * 9 + "|"]
+    base_lines = ["| model | grasps (floor / floating) | on floor: top-1 | top-5 | top-20 "
+                  "| floating: top-1 | top-5 | top-20 | sampling (s) |", "|---" * 9 + "|"]
     base_totals = {key: [] for key in totals}
     for name in args.models:
         rel, scale, up = MODELS[name]
         mesh = load_mesh(DATA / rel)
         d = jaxfit.decompose(load_source(DATA / rel, num_points=NUM_POINTS, seed=0), key=0)
         jaw = jaxfit.ParallelJaw(**{k: v / scale for k, v in JAW_METRES.items()})
+        floor_plane = support_of(d.points, up)
         start = time.perf_counter()
-        jaxfit.grasps(d, jaw, key=0, top=TOP)
+        jaxfit.grasps(d, jaw, key=0, top=TOP, support=floor_plane)
         first = time.perf_counter() - start
-        start = time.perf_counter()
-        g = jaxfit.grasps(d, jaw, key=0, top=TOP)
-        warm = time.perf_counter() - start
+        plans, warm = {}, {}
+        for floor in (True, False):  # on a floor the planner is told where it is
+            start = time.perf_counter()
+            plans[floor] = jaxfit.grasps(d, jaw, key=0, top=TOP,
+                                         support=floor_plane if floor else None)
+            warm[floor] = time.perf_counter() - start
         pieces = convex_pieces(mesh, args.pieces)
         trials = {floor: [lift_trial(mesh, pose, width, jaw, scale=scale, up=up,
                                      pieces=pieces, floor=floor)
                           for pose, width in zip(g.poses, g.widths, strict=True)]
-                  for floor in (True, False)}
+                  for floor, g in plans.items()}
         outcomes = {floor: [bool(t) for t in ts] for floor, ts in trials.items()}
-        base_poses, base_widths, base_seconds = antipodal(mesh, jaw, TOP)
-        base = {floor: [bool(lift_trial(mesh, pose, width, jaw, scale=scale, up=up,
-                                        pieces=pieces, floor=floor))
-                        for pose, width in zip(base_poses, base_widths, strict=True)]
-                for floor in (True, False)}
+        base = {}
+        for floor in (True, False):  # the baseline is told of the floor too
+            base_poses, base_widths, base_seconds = antipodal(
+                mesh, jaw, TOP, support=floor_plane if floor else None)
+            base[floor] = [bool(lift_trial(mesh, pose, width, jaw, scale=scale, up=up,
+                                           pieces=pieces, floor=floor))
+                           for pose, width in zip(base_poses, base_widths, strict=True)]
         for floor, k in base_totals:
             base_totals[floor, k].append(np.mean(base[floor][:k]) if base[floor] else 0.0)
-        base_lines.append(f"| {name} | {len(base_poses)} | "
+        base_lines.append(f"| {name} | {len(base[True])} / {len(base[False])} | "
                           + " | ".join(rate(base[floor], k) for floor in (True, False)
                                        for k in (1, 5, 20)) + f" | {base_seconds:.2f} |")
         for floor, k in totals:  # a model without grasps counts as 0
             totals[floor, k].append(np.mean(outcomes[floor][:k]) if outcomes[floor] else 0.0)
-        below = int(np.sum(g.approach @ np.eye(3)[up] > 0.5))
+        upv = up_vector(up)
+        below = int(np.sum(plans[False].approach @ upv > 0.5))
         record[name] = {
             "pieces": len(_pieces(mesh, pieces)), "parts": [p.winner for p in d.parts],
-            "candidates": g.num_candidates, "plan_seconds_warm": warm,
-            "grasps": [{"rank": i, "primitive": str(g.primitives[i]), "part": int(g.parts[i]),
+            "candidates": plans[False].num_candidates,
+            "plan_seconds_warm": {"floor": warm[True], "floating": warm[False]},
+            "baseline": {"floor": base[True], "floating": base[False]},
+            **{where: [{"rank": i, "primitive": str(g.primitives[i]), "part": int(g.parts[i]),
                         "score": float(g.scores[i]), "width_m": float(g.widths[i] * scale),
-                        "approach_up": float(g.approach[i] @ np.eye(3)[up]),
-                        **{f"{where}_{key}": getattr(trials[floor][i], key).tolist()
-                           if key == "offset" else getattr(trials[floor][i], key)
-                           for floor, where in ((True, "floor"), (False, "floating"))
+                        "contact_width_m": float(g.contact_widths[i] * scale),
+                        "approach_up": float(g.approach[i] @ upv),
+                        **{key: getattr(trials[floor][i], key).tolist() if key == "offset"
+                           else getattr(trials[floor][i], key)
                            for key in ("success", "rise", "offset")}}
-                       for i in range(len(g))]}
+                       for i in range(len(g))]
+               for floor, where in ((True, "floor"), (False, "floating"))
+               for g in (plans[floor],)}}
         cells = " | ".join(rate(outcomes[floor], k) for floor in (True, False)
                            for k in (1, 5, 20))
-        lines.append(f"| {name} | {len(d.parts)} | {g.num_candidates} | {len(g)} | {below} "
-                     f"| {record[name]['pieces']} | {cells} | {warm:.3f} | {first:.2f} |")
+        lines.append(f"| {name} | {len(d.parts)} | {plans[False].num_candidates} "
+                     f"| {len(plans[True])} / {len(plans[False])} | {below} "
+                     f"| {record[name]['pieces']} | {cells} | {max(warm.values()):.3f} "
+                     f"| {first:.2f} |")
         print(lines[-1], flush=True)
     mean = " | ".join(f"{100 * np.mean(totals[key]):.0f} %" if totals[key] else "–"
                       for key in totals)

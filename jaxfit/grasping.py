@@ -54,6 +54,9 @@ from .shapes._geometry import frame
 #: ``MIN_POINTS_BUCKET``), so the filter compiles once per bucket, not per object.
 CANDIDATE_BUCKET = 64
 MIN_POINTS_BUCKET = 1024
+#: Surface-seeded candidates per part (``_seeded_candidates``): points drawn per part,
+#: each approached from four directions.
+SEEDS_PER_PART = 24
 
 
 @dataclasses.dataclass(frozen=True)
@@ -301,27 +304,64 @@ PROPOSERS = {"box": _box_candidates, "cylinder": _cylinder_candidates,
              "plane": _plane_candidates}
 
 
-def candidates(decomposition, *, key=0):
+def _seeded_candidates(model, points, normals, rng, count: int = SEEDS_PER_PART):
+    """Candidates on ``count`` of a part's points (drawn with ``rng``), in the cloud's
+    coordinates: closing along the point's normal (the pad lands on that surface), the
+    approach line through the point along the four directions perpendicular to the
+    normal that follow the primitive's axes (cylinder and cone: along the axis and around
+    it; box: its two axes most perpendicular to the normal; sphere and plane: a frame
+    about the normal). On a hollow cylinder's wall this gives rim grasps (from the open
+    end along the axis, one finger inside the wall, one outside); on a thin part (a
+    handle) grasps across its thin side; the filter drops the rest."""
+    if len(points) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+    pick = rng.choice(len(points), size=min(count, len(points)), replace=False)
+    p, n = points[pick], normals[pick]
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    axes = np.asarray(model.transform(), np.float64)[:3, :3]
+    if model.name in ("cylinder", "cone"):
+        guide = np.broadcast_to(axes[:, 2], n.shape)
+    elif model.name == "box":
+        guide = axes.T[np.argmin(np.abs(n @ axes), axis=1)]
+    else:
+        guide = np.array([frame(v)[:, 0] for v in n])
+    e1 = guide - np.sum(guide * n, axis=1, keepdims=True) * n
+    norm = np.linalg.norm(e1, axis=1, keepdims=True)
+    good = norm[:, 0] > 0.5  # the axis is far from the normal: a wall, not an end face
+    e1 = e1[good] / norm[good]
+    p, n = p[good], n[good]
+    e2 = np.cross(n, e1)
+    approaches = np.concatenate([e1, -e1, e2, -e2])
+    return np.tile(p, (4, 1)), approaches, np.tile(n, (4, 1))
+
+
+def candidates(decomposition, *, key=0, normals=None, seeds: int = SEEDS_PER_PART):
     """All parts' candidates in the cloud's coordinates: centres (K, 3) of the approach
     lines, rotations (K, 3, 3) with columns X, Y (closing), Z (approach), part indices
-    (K,)."""
+    (K,). The primitive's own approaches (``PROPOSERS``) come first, then, when
+    ``normals`` (N, 3) of the decomposition's points are given, ``seeds`` surface-seeded
+    ones per part (``_seeded_candidates``)."""
     seed = _checks.numpy_seed(key)
     centres, rotations, parts = [], [], []
+    points = np.asarray(decomposition.points, np.float64)
     for index, part in enumerate(decomposition.parts):
         propose = PROPOSERS.get(part.model.name)
         if propose is None:
             continue
         rng = np.random.default_rng([seed, index])
         c, z, y = propose(part.model, rng)
-        if not len(c):
-            continue
         transform = np.asarray(part.model.transform(), np.float64)
         r0, o = transform[:3, :3], transform[:3, 3]
-        z = z @ r0.T
-        y = y @ r0.T
+        c, z, y = c @ r0.T + o, z @ r0.T, y @ r0.T
+        if normals is not None and seeds:
+            idx = np.asarray(part.indices)
+            c2, z2, y2 = _seeded_candidates(part.model, points[idx], normals[idx], rng, seeds)
+            c, z, y = np.concatenate([c, c2]), np.concatenate([z, z2]), np.concatenate([y, y2])
+        if not len(c):
+            continue
         y = y - np.sum(y * z, axis=1, keepdims=True) * z
         y /= np.linalg.norm(y, axis=1, keepdims=True)
-        centres.append(c @ r0.T + o)
+        centres.append(c)
         rotations.append(np.stack([np.cross(y, z), y, z], axis=-1))
         parts.append(np.full(len(c), index))
     if not centres:
@@ -374,6 +414,14 @@ def _filter(points, valid, normals, centres, rotations, com, dims):
     palm_hit = ((ax <= hp + m) & (ay1 <= w0 / 2 + t + m) & (z0 >= -fd - pd - m)
                 & (z0 <= -fd + m))
     collides = jnp.any(v & (finger_hit | palm_hit), axis=1)
+    # The pre-grasp opening: as wide as the fingers can open at this pose without
+    # touching a point (the nearest point beyond the fingers' outer faces in their
+    # footprint), within the swept region the approach checked (the original line's
+    # fingers at max_width), at least the contact width plus the clearance.
+    beside = (v & (ax <= hw + m) & (z0 >= -fd - m) & (z0 <= m)
+              & (ay1 > width[:, None] / 2 + t + m))
+    nearest = jnp.min(jnp.where(beside, ay1, big), axis=1)
+    opening = jnp.clip(jnp.minimum(w0 - 2 * jnp.abs(mid), 2 * (nearest - t - m)), width, w0)
     # Antipodal quality: mean |normal . closing axis| over the region's points within
     # ``tol`` of each pad.
     closing = rotations[:, :, 1]
@@ -383,10 +431,18 @@ def _filter(points, valid, normals, centres, rotations, com, dims):
     def pad(near):
         w = near.astype(points.dtype)
         n = jnp.maximum(jnp.sum(w, axis=1), 1.0)
-        return jnp.sum(w * cos, axis=1) / n, (w @ points) / n[:, None]
 
-    q_lo, c_lo = pad(band & (y - lo[:, None] <= tol))
-    q_hi, c_hi = pad(band & (hi[:, None] - y <= tol))
+        def mean(a):
+            return jnp.sum(w * a, axis=1) / n
+
+        # The patch's radius in the pad's plane: RMS distance of its points from their
+        # centroid across the pad (x) and along the finger (z).
+        spread = jnp.sqrt(jnp.maximum(mean(x * x) - mean(x) ** 2 + mean(z0 * z0)
+                                      - mean(z0) ** 2, 0.0))
+        return mean(cos), (w @ points) / n[:, None], spread
+
+    q_lo, c_lo, r_lo = pad(band & (y - lo[:, None] <= tol))
+    q_hi, c_hi, r_hi = pad(band & (hi[:, None] - y <= tol))
     antipodal = jnp.minimum(q_lo, q_hi)
     line = c_hi - c_lo
     alignment = jnp.abs(jnp.sum(line * closing, axis=1)) / jnp.maximum(
@@ -394,19 +450,87 @@ def _filter(points, valid, normals, centres, rotations, com, dims):
     origin = centres + jnp.einsum("cjk,ck->cj", rotations,
                                   jnp.stack([jnp.zeros_like(s), mid, s], axis=1))
     grip = 0.5 * (c_lo + c_hi)
-    centred = 1 - 0.5 * jnp.minimum(1.0, jnp.linalg.norm(grip - com, axis=1) / size)
-    score = antipodal * alignment * centred
+    # Gravity's torque about the closing line (lever: the centre of mass's distance from
+    # it) against what the pads' friction patches resist (their radius): r / (r + lever).
+    arm = com - grip
+    lever = jnp.linalg.norm(arm - jnp.sum(arm * closing, axis=1, keepdims=True) * closing,
+                            axis=1)
+    patch = jnp.minimum(r_lo, r_hi)
+    holding = patch / jnp.maximum(patch + lever, 1e-30)
+    score = antipodal * alignment * holding
     ok = (has & ~collides & (antipodal >= min_q) & (contact_width > 0) & (contact_width < w0)
           & jnp.isfinite(score) & (s > -big / 2))
-    return ok, origin, width, contact_width, jnp.stack([c_lo, c_hi], axis=1), antipodal, score
+    return ok, origin, opening, contact_width, jnp.stack([c_lo, c_hi], axis=1), antipodal, score
 
 
 def _bucket(n: int, step: int) -> int:
     return max(step, -(-n // step) * step)
 
 
+def _support(support):
+    """``support`` as (unit up (3,), height) or None, checked."""
+    if support is None:
+        return None
+    try:
+        up, height = support
+        up = np.asarray(up, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError("support must be (up, height): a direction (3,) out of the table "
+                         f"and the table's offset along it, got {support!r}") from None
+    norm = float(np.linalg.norm(up)) if up.shape == (3,) else 0.0
+    if up.shape != (3,) or not np.all(np.isfinite(up)) or norm == 0:
+        raise ValueError(f"support's up must be a finite non-zero (3,) direction, got {up!r}")
+    if isinstance(height, bool) or not isinstance(height, numbers.Real) or not np.isfinite(
+            height):
+        raise ValueError(f"support's height must be a finite number, got {height!r}")
+    return up / norm, float(height)
+
+
+def clears_support(poses, widths, gripper: ParallelJaw, up, height: float,
+                   standoff: float | None = None) -> np.ndarray:
+    """(K,) whether the palm and finger boxes at each pose (K, 4, 4) and opening (K,), and
+    at its pre-grasp ``standoff`` back along the approach (default the finger depth: where
+    the hand starts, ``Grasps.pregrasp``), stay at least the clearance above the support
+    plane {p : p . up = height}. The approach between them is a straight line, so both
+    ends clearing means the whole path does."""
+    standoff = gripper.finger_depth if standoff is None else standoff
+    if len(poses) == 0:
+        return np.zeros(0, bool)
+    bounds = np.array([gripper.boxes(w) for w in widths])  # (K, 3, 2, 3)
+    pick = np.array([[i >> k & 1 for k in range(3)] for i in range(8)])  # (8, 3) corners
+    corners = np.where(pick[None, None] == 1, bounds[:, :, None, 1], bounds[:, :, None, 0])
+    local_up = np.einsum("kji,j->ki", poses[:, :3, :3], up)  # up in each grasp frame
+    lowest = np.min(np.einsum("kbcj,kj->kbc", corners, local_up), axis=(1, 2))
+    base = poses[:, :3, 3] @ up + lowest
+    back = standoff * (poses[:, :3, 2] @ up)
+    return np.minimum(base, base - back) >= height + gripper.clearance
+
+
+def distinct(poses, order, *, separation: float, degrees: float,
+             limit: int | None = None) -> np.ndarray:
+    """Indices from ``order`` (best first) whose pose (K, 4, 4) is not a near-duplicate of
+    one kept before it: a duplicate lies within ``separation`` of a kept grasp's origin
+    with its approach and closing line (sign ignored: a parallel jaw turned half a turn is
+    the same grasp) both within ``degrees``. Stops after ``limit`` kept."""
+    cos = np.cos(np.radians(degrees))
+    kept: list[int] = []
+    for i in order:
+        if kept:
+            k = np.asarray(kept)
+            near = np.linalg.norm(poses[k, :3, 3] - poses[i, :3, 3], axis=1) <= separation
+            same = ((poses[k, :3, 2] @ poses[i, :3, 2] >= cos)
+                    & (np.abs(poses[k, :3, 1] @ poses[i, :3, 1]) >= cos))
+            if np.any(near & same):
+                continue
+        kept.append(int(i))
+        if limit is not None and len(kept) == limit:
+            break
+    return np.asarray(kept, int)
+
+
 def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None,
-           min_quality: float = 0.8, min_points: int = 4, normals=None) -> Grasps:
+           min_quality: float = 0.8, min_points: int = 4, normals=None, support=None,
+           separation: float | None = None, separation_degrees: float = 30.0) -> Grasps:
     """Parallel-jaw grasps of a decomposed object (module docstring).
 
     Parameters
@@ -420,6 +544,14 @@ def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None
         and the closing axis at each pad (0.8: about 37 degrees).
     min_points : fewest points between the fingers.
     normals : (N, 3) the points' normals (signs ignored); default estimated (k = 16).
+    support : None (the object floats: any approach) or (up, height): the table the object
+        stands on, the plane {p : p . up = height} with ``up`` (3,) pointing away from it;
+        grasps whose gripper boxes, at the grasp or at the pre-grasp, would come within
+        the clearance of it are dropped (``clears_support``), as a robot that knows where
+        the table is would.
+    separation, separation_degrees : near-duplicates are dropped (``distinct``): a grasp
+        within ``separation`` (default the finger width; 0 keeps all) of a better one's
+        origin, with approach and closing line within ``separation_degrees`` (30).
     """
     from .decomposition import Decomposition
     from .normals import estimate_normals
@@ -439,7 +571,13 @@ def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None
     if normals is None:
         normals = estimate_normals(points, k=min(16, len(points)), orient=None)
     normals = _checks.normals_for(normals, points)
-    centres, rotations, parts = candidates(decomposition, key=key)
+    support = _support(support)
+    separation = gripper.finger_width if separation is None else _checks.non_negative(
+        separation, "separation")
+    if isinstance(separation_degrees, bool) or not isinstance(
+            separation_degrees, numbers.Real) or not 0 <= separation_degrees <= 180:
+        raise ValueError(f"separation_degrees must be in [0, 180], got {separation_degrees!r}")
+    centres, rotations, parts = candidates(decomposition, key=key, normals=normals)
     count = len(centres)
     models = [p.model for p in decomposition.parts]
     com = mass_properties(models)[1] if models else points.mean(axis=0)
@@ -450,8 +588,19 @@ def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None
         ok, origin, width, contact_width, contacts, antipodal, score = _run_filter(
             points - shift, normals, centres - shift, rotations, com - shift, gripper,
             min_quality, min_points, size)
+        width = np.minimum(width, gripper.max_width)  # float32's rounding of max_width
         keep = np.flatnonzero(ok)
-        keep = keep[np.argsort(-score[keep], kind="stable")][:top]
+        keep = keep[np.argsort(-score[keep], kind="stable")]
+        if support is not None:
+            placed = np.tile(np.eye(4), (len(keep), 1, 1))
+            placed[:, :3, :3], placed[:, :3, 3] = rotations[keep], origin[keep] + shift
+            keep = keep[clears_support(placed, width[keep], gripper, *support)]
+        if separation > 0:
+            placed = np.tile(np.eye(4), (len(origin), 1, 1))
+            placed[:, :3, :3], placed[:, :3, 3] = rotations, origin
+            keep = distinct(placed, keep, separation=separation,
+                            degrees=float(separation_degrees), limit=top)
+        keep = keep[:top]
     else:
         keep = np.zeros(0, int)
         origin, width, contact_width = np.zeros((0, 3)), np.zeros(0), np.zeros(0)

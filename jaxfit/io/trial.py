@@ -63,9 +63,21 @@ class Trial:
         return bool(self.success)
 
 
-def _up_frame(up: int) -> np.ndarray:
-    """(3, 3) columns: the object's axes that become world X, Y, Z (Z along ``up``)."""
-    return np.roll(np.eye(3), -(up + 1), axis=1)
+def _up_frame(up) -> np.ndarray:
+    """(3, 3) columns: the object's axes that become world X, Y, Z (Z along ``up``: an
+    axis index 0, 1, 2, or a direction (3,), which may point down an axis, say (0, -1, 0)
+    for a mug modelled with its opening at -Y)."""
+    if isinstance(up, (int, np.integer)) and not isinstance(up, bool):
+        if up not in (0, 1, 2):
+            raise ValueError(f"up must be an axis 0, 1, 2 or a direction (3,), got {up!r}")
+        return np.roll(np.eye(3), -(up + 1), axis=1)
+    from ..shapes._geometry import frame
+
+    direction = np.asarray(up, np.float64)
+    norm = float(np.linalg.norm(direction)) if direction.shape == (3,) else 0.0
+    if direction.shape != (3,) or not np.isfinite(norm) or norm == 0:
+        raise ValueError(f"up must be an axis 0, 1, 2 or a direction (3,), got {up!r}")
+    return frame(direction / norm)
 
 
 def _pieces(mesh, pieces):
@@ -113,7 +125,7 @@ def _numbers(values) -> str:
     return " ".join(f"{float(v):.9g}" for v in np.ravel(values))
 
 
-def trial_mjcf(mesh, gripper, width: float, *, pieces=None, scale: float = 1.0, up: int = 2,
+def trial_mjcf(mesh, gripper, width: float, *, pieces=None, scale: float = 1.0, up=2,
                density: float = 500.0, floor: bool = True,
                grip_force: float = 40.0) -> tuple[str, float]:
     """The MJCF text of the trial's scene (module docstring) and each finger's joint
@@ -193,7 +205,7 @@ def trial_mjcf(mesh, gripper, width: float, *, pieces=None, scale: float = 1.0, 
 
 
 def lift_trial(mesh, pose, width: float, gripper, *, pieces=None, scale: float = 1.0,
-               up: int = 2, lift: float = 0.10, hold: float = 2.0, density: float = 500.0,
+               up=2, lift: float = 0.10, hold: float = 2.0, density: float = 500.0,
                floor: bool = True, grip_force: float = 40.0, slack: float = 0.01) -> Trial:
     """Simulate one grasp (module docstring) and return its ``Trial`` (true on success).
 
@@ -204,7 +216,8 @@ def lift_trial(mesh, pose, width: float, gripper, *, pieces=None, scale: float =
     width : the opening the fingers start at (``Grasps.widths[i]``), cloud units.
     gripper : the ``ParallelJaw`` the grasp was planned for (cloud units).
     scale : cloud units to metres (0.001 for GraspIt!'s millimetres).
-    up : the object's axis that points up (gravity along its minus).
+    up : the object's axis that points up (gravity along its minus): 0, 1, 2, or a
+        direction (3,) (``_up_frame``).
     lift, hold : metres lifted, seconds held after the lift.
     floor : rest the object on a floor; without, it floats without gravity until the
         fingers have closed.
