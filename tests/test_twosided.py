@@ -192,3 +192,14 @@ def test_bad_input_is_named():
         ts.compare(np.zeros((5, 3)), [])
     with pytest.raises(ValueError, match="faces"):
         ts.winding_numbers(np.zeros((3, 3)), np.array([[0, 1, 5]]), np.zeros((1, 3)))
+
+
+def test_faces_two_solids_share_are_not_surface():
+    """Two unit cubes side by side, face to face (as a convex decomposition's pieces
+    meet): the shared face is inside the 2 x 1 x 1 bar, so it is neither sampled nor far
+    from the bar's mesh (it would be 0.5 from it)."""
+    a = Box(np.array([-0.5, 0.0, 0.0]), np.eye(3), np.ones(3))
+    b = Box(np.array([0.5, 0.0, 0.0]), np.eye(3), np.ones(3))
+    out = ts.compare(trimesh.creation.box(extents=(2, 1, 1)), [a, b], seed=3)
+    assert out["union_surface_kept"] == pytest.approx(10.0 / 12.0, abs=0.02)
+    assert out["hausdorff"] < 1e-9
