@@ -404,7 +404,7 @@ def _dask():
     return Client, LocalCluster, as_completed
 
 
-def _run_dask(jobs, call, on_row, task, scheduler: str, workers: int):
+def _run_dask(jobs, call, on_row, task, scheduler, workers: int):
     """On a Dask ``LocalCluster`` (``scheduler="local"``: ``workers`` single-threaded
     processes) or the cluster at ``scheduler``; smallest models get the highest
     priority. A model whose worker dies is retried by Dask on another; one that kills
@@ -419,10 +419,11 @@ def _run_dask(jobs, call, on_row, task, scheduler: str, workers: int):
         client = client_class(cluster)
     else:
         cluster = None
+        address = getattr(scheduler, "scheduler_address", scheduler)  # a cluster object
         try:
-            client = client_class(scheduler, timeout=30)
+            client = client_class(address, timeout=30)
         except (OSError, TimeoutError, ValueError) as err:
-            raise ValueError(f"cannot reach the Dask scheduler {scheduler}: {err}") from None
+            raise ValueError(f"cannot reach the Dask scheduler {address}: {err}") from None
     try:
         futures = {client.submit(call, job, key=f"jaxfit-{i:06d}", pure=False,
                                  priority=len(jobs) - i): job for i, job in enumerate(jobs)}
@@ -500,7 +501,7 @@ def write_summary(rows: list[dict], out, meta: dict) -> None:
 
 
 def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int = 1,
-              scheduler: str | None = None, num_points: int = 20000, seed: int = 0,
+              scheduler=None, num_points: int = 20000, seed: int = 0,
               extensions=None, progress: bool = False) -> Summary:
     """Run ``task`` on every model of ``inputs`` and write ``out`` (see the module
     docstring for inputs, outputs, resuming and executors).
@@ -514,8 +515,9 @@ def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int
         candidate names, default theirs.
     workers : local worker processes (0: this process); with ``scheduler="local"``, the
         LocalCluster's workers.
-    scheduler : None (local processes), ``"local"`` (a Dask LocalCluster) or a Dask
-        scheduler address such as ``"tcp://10.0.0.1:8786"``.
+    scheduler : None (local processes), ``"local"`` (a Dask LocalCluster), a Dask
+        scheduler address such as ``"tcp://10.0.0.1:8786"``, or a Dask cluster object
+        (its ``scheduler_address``: a dask-jobqueue ``SLURMCluster``, say).
     num_points : points sampled from a mesh's surface; seed : the sampling and fitting
         seed of every model.
     extensions : model extensions a folder or glob is searched for (default all).
@@ -549,7 +551,8 @@ def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int
     todo = [job for job in jobs if job.name not in rows]
     bar = _Progress(len(jobs), len(rows), enabled=progress)
     if progress:
-        where = (f"Dask scheduler {scheduler}" if scheduler else
+        where = (f"Dask scheduler {getattr(scheduler, 'scheduler_address', scheduler)}"
+                 if scheduler is not None else
                  f"{workers} worker process{'es' * (workers != 1)}" if workers else
                  "this process")
         print(f"batch: {len(jobs)} models ({len(rows)} done earlier), {task} on {where}",

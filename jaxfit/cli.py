@@ -219,9 +219,10 @@ def _report_scene(scene, num_points, seconds, args):
         print(f"wrote {scene.save(args.out)}")
     if args.json:
         _write_json(args.json, scene.to_dict())
-    if args.mesh:
-        if not scene.shapes:
-            raise ValueError(f"--mesh {args.mesh}: no primitive was found, no mesh to write")
+    if args.mesh and not scene.shapes:
+        print(f"jaxfit: no primitive found, so no mesh written to {args.mesh}",
+              file=sys.stderr)
+    elif args.mesh:
         with replacing(args.mesh) as part:
             scene.to_trimesh().export(part)
         print(f"wrote {args.mesh}")
