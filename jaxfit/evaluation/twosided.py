@@ -24,6 +24,10 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = ["compare", "volumetric_iou", "surface_distances", "coverage", "winding_numbers",
+           "inside_mesh", "solid_angles", "union_contains", "union_surface", "closed_surface",
+           "mesh_distances", "sample_triangles", "triangles", "ConvexSolid", "oriented_box"]
+
 #: Monte-Carlo points in the joint bounding box for the volumetric IoU: the standard
 #: error is sqrt(IoU (1 - IoU) / n_union), at most 0.0025 for 40,000 points in the union.
 VOLUME_SAMPLES = 40_000
@@ -439,13 +443,16 @@ def surface_distances(object_points, to_object, models, union_points, diagonal: 
     (a function (B, 3) -> (B,) distances to the object's surface), ``union_points``
     (B, 3) on the union's surface (``union_surface``).
 
-    ``chamfer`` = (mean over A of d(a, union) + mean over B of d(b, object)) / 2,
-    ``hausdorff`` = the larger of the two maxima; both directions are returned too
-    (``chamfer_object_to_union``, ``chamfer_union_to_object``).
+    ``chamfer`` = (mean over A of d(a, union) + mean over B of d(b, object)) / 2, with
+    its standard error ``chamfer_se`` (of the two sample means); ``hausdorff`` = the
+    larger of the two sampled maxima (a lower bound of the true one); both directions
+    are returned too (``chamfer_object_to_union``, ``chamfer_union_to_object``).
     """
     forward = _to_union(models, object_points, union_points, tol)
     backward = to_object(union_points)
+    se = 0.5 * np.sqrt(forward.var() / len(forward) + backward.var() / len(backward))
     return {"chamfer": 0.5 * (forward.mean() + backward.mean()) / diagonal,
+            "chamfer_se": se / diagonal,
             "hausdorff": max(forward.max(), backward.max()) / diagonal,
             "chamfer_object_to_union": forward.mean() / diagonal,
             "chamfer_union_to_object": backward.mean() / diagonal}
