@@ -10,9 +10,12 @@ JAX's internals this relies on, and measurements).
   ``jax.config.update("jax_compilation_cache_dir", ...)``) or JAX's cache is disabled
   (``JAX_ENABLE_COMPILATION_CACHE=false``), jaxfit changes nothing, thresholds included.
 - never fails an import: an unusable directory gives one ``RuntimeWarning`` and no cache.
-- process-wide: JAX's thresholds are lowered to store every executable (ours compile in
-  0.2-0.8 s, under JAX's 1 s default), so the user's own jitted functions are cached in the
-  same folder too.
+- jaxfit's compilations only: JAX's settings are not changed for the process. The folder,
+  and thresholds that store every executable (ours compile in 0.1-3 s, many under JAX's
+  1 s default), are set thread-locally while a ``Stored`` kernel is traced and first
+  called (``scope``), and JAX's cache reads and writes nothing in jaxfit's folder outside
+  that (``_guard_jax_entries``): a user's own jitted functions are not cached there (the
+  folder had been set for the whole process on import; docs/cache.md, "Library manners").
 
 Stored programs: JAX looks an executable up by the lowered program, so every process would
 still trace and lower each kernel first. ``Stored`` kernels therefore also keep the program
@@ -52,6 +55,7 @@ import secrets
 import stat
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -136,14 +140,40 @@ def enable(environ=os.environ) -> str | None:
                       f"set {ENV_DIR} to another folder or {ENV_SWITCH}=0 to silence this",
                       RuntimeWarning, stacklevel=2)
         return None
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    # Store every executable: ours compile in well under JAX's 1 s default. -1 also stops
-    # JAX from raising the size floor for the filesystem.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    # (JAX's settings are set only around jaxfit's own compilations: see ``scope``.)
     _enabled_dir = str(path)
     _guard_jax_entries()
     return _enabled_dir
+
+
+_inside = threading.local()  # .depth: how many ``scope`` blocks this thread is in
+
+
+@contextlib.contextmanager
+def scope():
+    """Within it (in this thread), JAX's persistent cache uses jaxfit's folder and stores
+    every executable (thresholds 0 s and -1 bytes: ours compile in well under JAX's 1 s
+    default, and -1 also stops JAX from raising the size floor for the filesystem);
+    a no-op when jaxfit configured no folder. Outside it JAX's settings are the user's."""
+    if _enabled_dir is None:
+        yield
+        return
+    from jax._src import config
+
+    _inside.depth = getattr(_inside, "depth", 0) + 1
+    try:
+        with (config.compilation_cache_dir(_enabled_dir),
+              config.persistent_cache_min_compile_time_secs(0.0),
+              config.persistent_cache_min_entry_size_bytes(-1)):
+            yield
+    finally:
+        _inside.depth -= 1
+
+
+def _outside_scope() -> bool:
+    """Whether JAX's cache is asked outside jaxfit's ``scope`` while it is jaxfit's
+    folder that JAX's cache object was made for (JAX makes one, on its first use)."""
+    return _enabled_dir is not None and not getattr(_inside, "depth", 0)
 
 
 def compilation_cache_dir() -> str | None:
@@ -153,6 +183,8 @@ def compilation_cache_dir() -> str | None:
     Turn jaxfit's off with ``JAXFIT_CACHE=0`` or move it with ``JAXFIT_CACHE_DIR``, both set
     before ``import jaxfit``.
     """
+    if _enabled_dir is not None:
+        return _enabled_dir
     if not jax.config.jax_enable_compilation_cache:
         return None
     return jax.config.jax_compilation_cache_dir
@@ -266,15 +298,30 @@ class Stored:
         dyn_args = tuple(a for i, a in enumerate(args) if i not in self.static_positions)
         dyn_kwargs = {k: v for k, v in kwargs.items() if k not in self.static_names}
         leaves, tree = jax.tree_util.tree_flatten((dyn_args, dyn_kwargs))
+        signature = self._signature(args, kwargs, leaves, tree)
+        kernel = self.kernels.get(signature)
+        if kernel is not None and kernel is not self.jitted and signature not in self.unproven:
+            return kernel(*dyn_args, **dyn_kwargs)  # (compiled by its first call)
+        with scope():  # a call that may trace or compile: in jaxfit's cache folder
+            if signature is None:
+                return self.jitted(*args, **kwargs)
+            return self._first_call(signature, kernel, leaves, tree, args, kwargs,
+                                    dyn_args, dyn_kwargs)
+
+    def _signature(self, args, kwargs, leaves, tree):
+        """The key of the call's program, or None where the plain jit answers."""
         shapes = tuple(_leaf_signature(leaf) for leaf in leaves)
         if None in shapes:
-            return self.jitted(*args, **kwargs)
+            return None
         static = tuple(_static_value(a) for i, a in enumerate(args)
                        if i in self.static_positions)
         static += tuple((k, _static_value(v)) for k, v in sorted(kwargs.items())
                         if k in self.static_names)
-        signature = (static, str(tree), shapes, _settings())
-        kernel = self.kernels.get(signature)
+        return (static, str(tree), shapes, _settings())
+
+    def _first_call(self, signature, kernel, leaves, tree, args, kwargs, dyn_args,
+                    dyn_kwargs):
+        """A call whose program may have to be read, exported or compiled."""
         if kernel is None:
             kernel = self.kernels[signature] = self._kernel(signature, args, kwargs, leaves,
                                                             tree)
@@ -504,41 +551,67 @@ def _guard_jax_entries() -> bool:
     written again after compiling (JAX's ``put`` skips a key whose file exists: a cut or
     corrupt entry would otherwise warn and recompile in every process, for ever).
 
+    Also keeps jaxfit's folder to jaxfit's compilations: JAX makes one cache object, for
+    the folder of its first use, and asks it on every later compilation whatever the
+    settings; while that is jaxfit's folder, a compilation outside ``scope`` (a user's own
+    function) reads nothing from it and writes nothing to it.
+
     Wraps ``jax._src.compilation_cache.get_executable_and_time``, which reads, decompresses
-    and deserializes an entry (jax 0.10.2). Where JAX's private names differ it does
-    nothing and returns False; it never raises."""
+    and deserializes an entry, and ``put_executable_and_time`` (jax 0.10.2). Where JAX's
+    private names differ it does nothing and returns False; it never raises."""
     try:
         from jax._src import compilation_cache, lru_cache
 
         read = compilation_cache.get_executable_and_time
+        write = compilation_cache.put_executable_and_time
         suffix = lru_cache._CACHE_SUFFIX
         inspect.signature(read).bind("key", None, None, None)
+        inspect.signature(write).bind("key", "name", None, None, 0)
     except Exception:  # another JAX: leave it alone
         return False
     if getattr(read, "_jaxfit_guard", False):
         return True
 
+    def not_ours_to_use() -> bool:
+        return _outside_scope() and _is_ours(getattr(compilation_cache, "_cache", None))
+
     @functools.wraps(read)
     def get_executable_and_time(cache_key, *args, **kwargs):
+        if not_ours_to_use():
+            return None, None
         try:
             return read(cache_key, *args, **kwargs)
         except Exception:
             _drop_entry(getattr(compilation_cache, "_cache", None), cache_key, suffix)
             raise  # JAX warns (once) and compiles, then writes the entry again
 
-    get_executable_and_time._jaxfit_guard = True
+    @functools.wraps(write)
+    def put_executable_and_time(*args, **kwargs):
+        if not not_ours_to_use():
+            return write(*args, **kwargs)
+
+    get_executable_and_time._jaxfit_guard = put_executable_and_time._jaxfit_guard = True
     compilation_cache.get_executable_and_time = get_executable_and_time
+    compilation_cache.put_executable_and_time = put_executable_and_time
     return True
+
+
+def _is_ours(cache) -> bool:
+    """Whether JAX's cache object ``cache`` is the one of jaxfit's folder."""
+    folder = getattr(cache, "_path", None)
+    try:
+        return (_enabled_dir is not None and folder is not None
+                and os.path.realpath(str(folder)) == os.path.realpath(_enabled_dir))
+    except Exception:  # (a path JAX holds in another form)
+        return False
 
 
 def _drop_entry(cache, cache_key, suffix) -> None:
     """Delete the entry file of ``cache_key`` if the cache in use is jaxfit's folder."""
     try:
-        folder = getattr(cache, "_path", None)
         name = f"{cache_key}{suffix}"
-        if (_enabled_dir is None or folder is None or not isinstance(cache_key, str)
-                or os.sep in name or "/" in name or name.startswith(".")
-                or os.path.realpath(str(folder)) != os.path.realpath(_enabled_dir)):
+        if (not _is_ours(cache) or not isinstance(cache_key, str)
+                or os.sep in name or "/" in name or name.startswith(".")):
             return
         os.unlink(os.path.join(_enabled_dir, name))
     except Exception:  # gone already, or not ours to judge

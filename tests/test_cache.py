@@ -46,12 +46,13 @@ print(json.dumps({
 }))
 """
 
-def run(env_update: dict[str, str | None]) -> tuple[dict, str]:
-    """Run SCRIPT in a fresh interpreter with the environment changed; (its JSON, stderr)."""
+def run(env_update: dict[str, str | None], script: str = SCRIPT) -> tuple[dict, str]:
+    """Run a script (default SCRIPT) in a fresh interpreter with the environment changed;
+    (its JSON, stderr)."""
     env = {k: v for k, v in os.environ.items()
            if not k.startswith(("JAXFIT_CACHE", "JAX_COMPILATION_CACHE", "JAX_ENABLE_COMP"))}
     env.update({k: v for k, v in env_update.items() if v is not None})
-    proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr
@@ -81,6 +82,41 @@ def test_second_process_hits_the_cache(tmp_path):
     assert entries(folder) == written  # nothing rewritten or added
     assert second["exports"] == 0 and exported(folder) == programs  # read, not traced
     assert second["inliers"] == first["inliers"]  # same result from the cached kernels
+
+
+# SCRIPT's fit, then a jitted function of the user's: what each stored in the folder.
+USER_SCRIPT = SCRIPT.replace("print(json.dumps({", """
+import os
+from pathlib import Path
+folder = Path(jaxfit.compilation_cache_dir())
+def stored():
+    return {p.name for p in folder.glob("*-cache")}
+after_fit, user_events = stored(), collections.Counter(events)
+@jax.jit
+def users_own(x):
+    return jax.numpy.sin(x) * 3.0 + jax.numpy.cos(x) ** 2
+users_own(jax.numpy.arange(7.0)).block_until_ready()
+user_events = {k: events[k] - user_events[k] for k in events}
+print(json.dumps({"user_wrote": sorted(stored() - after_fit),
+                  "user_hits": user_events.get("/jax/compilation_cache/cache_hits", 0),
+                  "jax_dir": jax.config.jax_compilation_cache_dir,
+                  "jax_min_time": jax.config.jax_persistent_cache_min_compile_time_secs,
+                  "jax_min_size": jax.config.jax_persistent_cache_min_entry_size_bytes,""", 1)
+
+
+def test_the_users_own_functions_are_not_cached_in_jaxfits_folder(tmp_path):
+    folder = tmp_path / "cache"
+    for process in ("first", "second"):
+        out, _ = run({_cache.ENV_DIR: str(folder)}, USER_SCRIPT)
+        assert out["dir"] == str(folder) and out["inliers"] > 0
+        # JAX's settings are the process's own; jaxfit set its folder only around its
+        # own compilations (they were set for the whole process on import)
+        assert (out["jax_dir"], out["jax_min_time"], out["jax_min_size"]) == (None, 1.0, 0)
+        assert out["user_wrote"] == [] and out["user_hits"] == 0
+        if process == "first":
+            assert out["misses"] > 0 and out["hits"] == 0
+        else:  # jaxfit's kernels still come from the folder
+            assert out["hits"] > 0 and out["misses"] == 0 and out["exports"] == 0
 
 
 def test_switch_off_writes_nothing(tmp_path):
