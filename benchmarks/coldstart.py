@@ -18,8 +18,13 @@ Then, per primitive, a fresh process fits a 2,000-point cloud twice and reports 
 and second call and JAX's own compile-phase durations (``jax.monitoring``), with the cache
 off, first process (empty folder) and second process.
 
-Run: ``python -m benchmarks.coldstart [--repeats 5]``. Writes
-``benchmarks/results/coldstart.json``, ``coldstart.md`` and ``coldstart.png``.
+Then, per primitive, the programs of a cold first fit (each one's trace, lowering and
+compile seconds from ``jax_log_compiles``), with the refinement compiled ahead in a thread
+or in turn; and ``jaxfit.warmup()`` in one and two threads.
+
+Run: ``python -m benchmarks.coldstart [--repeats 5] [--sections process,first-call,...]``.
+Writes ``benchmarks/results/coldstart.json``, ``coldstart.md`` and ``coldstart.png``
+(sections not run keep their committed results).
 """
 
 from __future__ import annotations
@@ -104,6 +109,43 @@ print(json.dumps({{"first": calls[0], "second": calls[1], **phases}}))
 """
 
 
+# A first fit in a fresh process with an empty cache: each program JAX traced, lowered and
+# compiled (jax_log_compiles' lines), with the refinement compiled ahead or not.
+PROGRAMS = r"""
+import json, logging, re, sys, threading, time
+import jax
+jax.config.update("jax_log_compiles", True)
+lines = []
+class Keep(logging.Handler):
+    def emit(self, record):
+        lines.append((threading.current_thread().name, record.getMessage()))
+logging.getLogger("jax").addHandler(Keep())
+logging.getLogger("jax").setLevel(logging.WARNING)
+import jaxfit
+import jaxfit.engine.loop as loop
+from jaxfit.evaluation.synthetic import demo_cloud
+loop.COMPILE_AHEAD = sys.argv[2] == "ahead"
+points, _, _ = demo_cloud(sys.argv[1], count=2000, outlier_ratio=0.3, seed=0)
+cpu, start = time.process_time(), time.perf_counter()
+jaxfit.fit(points, sys.argv[1], key=0)
+first, cpu = time.perf_counter() - start, time.process_time() - cpu
+phase = {"Finished tracing": "trace", "Finished jaxpr to MLIR": "lower",
+         "Finished XLA compilation": "compile"}
+programs, last = [], {}
+for thread, line in lines:
+    kind = next((v for k, v in phase.items() if line.startswith(k)), None)
+    if kind is None:
+        continue
+    name = re.search(r"(?:tracing |jit\()([\w<>.]+)", line).group(1)
+    seconds = float(re.search(r"in ([0-9.e-]+) sec", line).group(1))
+    if kind == "trace" and name != "call":
+        last[thread] = name  # an exported program's call is named after the function
+    label = last.get(thread, name) if name == "call" else name
+    programs.append({"program": label, "phase": kind, "seconds": seconds, "thread": thread})
+print(json.dumps({"first": first, "cpu": cpu, "programs": programs}))
+"""
+
+
 def _env(cache: str | None) -> dict:
     """The environment with jaxfit's cache in folder ``cache``, or off if None."""
     env = {k: v for k, v in os.environ.items()
@@ -185,7 +227,97 @@ def first_calls(work: Path, repeats: int) -> list[dict]:
     return rows
 
 
+def program_costs(work: Path, repeats: int) -> list[dict]:
+    """Per primitive, a first fit in a fresh process with an empty cache, the refinement
+    compiled ahead (in a thread, ``loop.COMPILE_AHEAD``) or not, taking turns: wall and
+    CPU seconds, and each program's trace, lowering and compile seconds (medians)."""
+    rows = []
+    for shape in SHAPES:
+        runs: dict[str, list[dict]] = {}
+        for turn in range(repeats):
+            for mode in ("ahead", "in turn"):
+                folder = str(work / f"programs-{shape}-{mode.replace(' ', '')}-{turn}")
+                _, out = wall([sys.executable, "-c", PROGRAMS, shape,
+                               "ahead" if mode == "ahead" else "serial"], _env(folder))
+                runs.setdefault(mode, []).append(json.loads(out.strip().splitlines()[-1]))
+        for mode, found in runs.items():
+            per: dict[tuple, list[float]] = {}
+            for run in found:  # (an exported program is traced and lowered twice: summed)
+                sums: dict[tuple, float] = {}
+                for p in run["programs"]:
+                    key = (p["program"], p["phase"])
+                    sums[key] = sums.get(key, 0.0) + p["seconds"]
+                for key, seconds in sums.items():
+                    per.setdefault(key, []).append(seconds)
+            compiled = [len([p for p in r["programs"] if p["phase"] == "compile"])
+                        for r in found]
+            rows.append({
+                "shape": shape, "refinement": mode, "runs": len(found),
+                "first": statistics.median(r["first"] for r in found),
+                "cpu": statistics.median(r["cpu"] for r in found),
+                "programs_compiled": statistics.median(compiled),
+                "phases": {f"{name} {phase}": statistics.median(v)
+                           for (name, phase), v in per.items()},
+            })
+        print(f"{shape}: " + ", ".join(f"{r['refinement']} {r['first']:.2f} s"
+                                       for r in rows if r["shape"] == shape), flush=True)
+    return rows
+
+
+WARMUP = """
+import json, sys, time
+cpu, start = time.process_time(), time.perf_counter()
+from jaxfit.warmup import warmup
+jobs = warmup(workers=int(sys.argv[1]))
+print(json.dumps({"wall": time.perf_counter() - start, "cpu": time.process_time() - cpu,
+                  "jobs": jobs}))
+"""
+
+
+def warmup_costs(work: Path, repeats: int) -> list[dict]:
+    """``jaxfit.warmup()`` (every shape, the default buckets) in a fresh process with an
+    empty cache, in 1 and 2 threads taking turns, and then again with the cache it filled."""
+    rows = []
+    for turn in range(repeats):
+        for workers in (1, 2):
+            folder = str(work / f"warmup-{workers}-{turn}")
+            for state in ("empty cache", "warm cache"):
+                _, out = wall([sys.executable, "-c", WARMUP, str(workers)], _env(folder))
+                rows.append({"workers": workers, "cache": state,
+                             **json.loads(out.strip().splitlines()[-1])})
+        print(f"warmup turn {turn}: " + ", ".join(f"{r['workers']} {r['cache']} "
+                                                  f"{r['wall']:.1f} s" for r in rows[-4:]),
+              flush=True)
+    return rows
+
+
 # ----- tables and plot ----------------------------------------------------------------
+
+
+def program_table(rows) -> str:
+    lines = ["| shape | refinement compiled | first fit s | CPU s | programs compiled "
+             "| kernel trace / lower / compile s | refinement trace / lower / compile s |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        def three(name, ph=r["phases"]):
+            return " / ".join(f"{ph.get(f'{name} {k}', 0):.2f}"
+                              for k in ("trace", "lower", "compile"))
+        lines.append(f"| {r['shape']} | {r['refinement']} | {r['first']:.2f} | {r['cpu']:.2f} "
+                     f"| {r['programs_compiled']:g} | {three('_batch_best_many')} "
+                     f"| {three('_refine_many')} |")
+    return "\n".join(lines)
+
+
+def warmup_table(rows) -> str:
+    lines = ["| threads | cache | median wall s | median CPU s | runs |", "|---|---|---|---|---|"]
+    for workers in (1, 2):
+        for state in ("empty cache", "warm cache"):
+            sel = [r for r in rows if r["workers"] == workers and r["cache"] == state]
+            if sel:
+                lines.append(f"| {workers} | {state} "
+                             f"| {statistics.median(r['wall'] for r in sel):.2f} "
+                             f"| {statistics.median(r['cpu'] for r in sel):.2f} | {len(sel)} |")
+    return "\n".join(lines)
 
 
 def process_table(times) -> str:
@@ -239,37 +371,73 @@ def plot(times, rows, path):
     print(f"wrote {path}")
 
 
+SECTIONS = ("process", "first-call", "programs", "warmup")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5, help="turns per method (5)")
     parser.add_argument("--first-call-repeats", type=int, default=3)
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help="comma-separated among " + ", ".join(SECTIONS) + " (all); the "
+                        "others keep their results from the committed JSON")
     args = parser.parse_args(argv)
+    sections = args.sections.split(",")
+    if unknown := set(sections) - set(SECTIONS):
+        parser.error(f"unknown sections {sorted(unknown)}; expected among {SECTIONS}")
+    path = RESULTS / "coldstart.json"
+    results = json.loads(path.read_text()) if path.exists() else {}
     work = Path(tempfile.mkdtemp(prefix="jaxfit-coldstart-"))
     try:
-        points, _, _ = demo_cloud("sphere", count=10_000, outlier_ratio=0.3, seed=0)
-        cloud = work / "sphere.npy"
-        np.save(cloud, points)
-        if not has_pyransac():
-            print("pyRANSAC-3D is not installed (pip install '.[bench]'): its rows are skipped")
-        times = whole_process(cloud, work, args.repeats)
-        rows = first_calls(work, args.first_call_repeats)
+        if "process" in sections:
+            points, _, _ = demo_cloud("sphere", count=10_000, outlier_ratio=0.3, seed=0)
+            cloud = work / "sphere.npy"
+            np.save(cloud, points)
+            if not has_pyransac():
+                print("pyRANSAC-3D is not installed (pip install '.[bench]'): its rows are "
+                      "skipped")
+            results["whole_process_seconds"] = whole_process(cloud, work, args.repeats)
+        if "first-call" in sections:
+            results["first_call"] = first_calls(work, args.first_call_repeats)
+        if "programs" in sections:
+            results["programs"] = program_costs(work, args.first_call_repeats)
+        if "warmup" in sections:
+            results["warmup"] = warmup_costs(work, args.first_call_repeats)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     import jax
 
-    meta = {"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
-            "cpus": os.cpu_count(), "python": platform.python_version(),
-            "repeats": args.repeats, "first_call_repeats": args.first_call_repeats,
-            "cloud": "sphere, 10,000 points, 30 % outliers, .npy", "threshold": THRESHOLD}
+    meta = results.get("meta", {})
+    meta.update({"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
+                 "cpus": os.cpu_count(), "python": platform.python_version(),
+                 "cloud": "sphere, 10,000 points, 30 % outliers, .npy",
+                 "threshold": THRESHOLD})
+    meta.setdefault("repeats_by_section", {}).update(
+        {name: args.repeats if name == "process" else args.first_call_repeats
+         for name in sections})
+    results["meta"] = meta
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "coldstart.json").write_text(json.dumps(
-        {"meta": meta, "whole_process_seconds": times, "first_call": rows}, indent=2))
-    md = "\n\n".join(["## Whole process (median of repeats)", process_table(times),
-                      "## First call per primitive (fresh process, medians)",
-                      first_call_table(rows)])
+    path.write_text(json.dumps(results, indent=2))
+    parts = []
+    if "whole_process_seconds" in results:
+        parts += ["## Whole process (median of repeats)",
+                  process_table(results["whole_process_seconds"])]
+    if "first_call" in results:
+        parts += ["## First call per primitive (fresh process, medians)",
+                  first_call_table(results["first_call"])]
+    if "programs" in results:
+        parts += ["## Programs of a first fit (fresh process, empty cache, 2,000 points, "
+                  "medians): the refinement compiled ahead in a thread, or in turn",
+                  program_table(results["programs"])]
+    if "warmup" in results:
+        parts += ["## `jaxfit.warmup()`: every shape at the default buckets (fresh process)",
+                  warmup_table(results["warmup"])]
+    md = "\n\n".join(parts)
     (RESULTS / "coldstart.md").write_text(md + "\n")
     print(md)
-    plot(times, rows, RESULTS / "coldstart.png")
+    if "whole_process_seconds" in results and "first_call" in results:
+        plot(results["whole_process_seconds"], results["first_call"],
+             RESULTS / "coldstart.png")
 
 
 if __name__ == "__main__":

@@ -3,9 +3,9 @@
 ``warmup()`` fits a synthetic cloud of each shape at each point bucket with the default
 options, so the programs a default ``fit`` of a cloud of that bucket runs (the fused
 hypothesis kernel and the refinement) are compiled in this process and, with jaxfit's
-cache on, stored for every later one (``jaxfit._cache``). The fits run in threads: XLA's
-compilation releases the GIL, so one shape compiles while another traces (figures:
-docs/engine.md, "Compile cost").
+cache on, stored for every later one (``jaxfit._cache``). On machines with more cores the
+fits run in threads: XLA's compilation releases the GIL, so one shape compiles while
+another traces (figures: docs/engine.md, "Compile cost").
 """
 
 from __future__ import annotations
@@ -60,13 +60,14 @@ def warmup(shapes: Iterable[str] | str | None = None, *, buckets: Iterable[int] 
            ) -> dict[str, float]:
     """Compile the default fit's programs of each shape (default: every registered one)
     for each point bucket (default ``DEFAULT_BUCKETS``), in ``workers`` threads (default:
-    the CPU count, at most 4).
+    half the CPU count, at least 1 and at most 4: XLA's compilation already keeps ~1.4
+    cores busy, and 2 threads on 2 cores did not pay).
 
     Returns ``{"<shape>/<bucket>": seconds}``, each job's wall time (a few ms where the
     programs were cached already). ``say`` gets one line per finished job.
     """
     jobs = _jobs(shapes, buckets)
-    workers = min(4, os.cpu_count() or 1) if workers is None else workers
+    workers = max(1, min(4, (os.cpu_count() or 2) // 2)) if workers is None else workers
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     seconds: dict[str, float] = {}
