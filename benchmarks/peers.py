@@ -425,6 +425,57 @@ def scenes(count: int, repeats: int, methods, fit4cad: bool = True) -> list[dict
     return rows
 
 
+# ----- the final refit: accuracy against N, on and off ----------------------------
+
+
+def refit_table(shapes=("plane", "sphere", "cylinder", "cone"), sizes=SIZES,
+                share: float = 0.3, clouds: int = 5) -> list[dict]:
+    """Median errors (``evaluation.measures.errors``) and fit times of jaxfit with the
+    final refit on and off (``engine.fit.FINAL_MIN_POINTS``), interleaved, per shape and N."""
+    import importlib
+
+    from jaxfit.evaluation.measures import errors
+
+    fit_module = importlib.import_module("jaxfit.engine.fit")
+    default = fit_module.FINAL_MIN_POINTS
+    rows = []
+    for shape in shapes:
+        for n in sizes:
+            found = {"off": [], "on": []}
+            times = {"off": [], "on": []}
+            for c in range(clouds):
+                points, _, model, threshold = cloud(shape, n, share, 7000 + 100 * c + n)
+                for turn, mode in enumerate(("off", "on", "off", "on")):  # first two: warm
+                    fit_module.FINAL_MIN_POINTS = default if mode == "on" else 1 << 62
+                    start = time.perf_counter()
+                    result = jaxfit.fit(points, shape, threshold=threshold, key=c)
+                    if turn >= 2:
+                        times[mode].append(time.perf_counter() - start)
+                        found[mode].append(errors(model, result.model))
+            fit_module.FINAL_MIN_POINTS = default
+            row = {"shape": shape, "points": n, "outliers": share, "clouds": clouds}
+            for mode in ("off", "on"):
+                keys = [k for k in found[mode][0] if k.endswith("_deg") or k == "center_rel"]
+                row[mode] = {k: float(np.median([f[k] for f in found[mode]])) for k in keys}
+                row[mode]["ms"] = 1e3 * float(np.median(times[mode]))
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    return rows
+
+
+def refit_markdown(rows) -> str:
+    lines = ["# The final refit: jaxfit's median errors against N, refit off / on", "",
+             f"`python -m benchmarks.peers --refit`: {rows[0]['clouds']} clouds per row "
+             f"(the generator of benchmarks/peers.py, {int(100 * rows[0]['outliers'])} % "
+             "outliers), errors of `jaxfit.evaluation.measures`; ms: median warm fit time.", "",
+             "| shape | N | error | off | on | ms off | ms on |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for k in [k for k in r["on"] if k != "ms"]:
+            lines.append(f"| {r['shape']} | {r['points']} | {k} | {r['off'][k]:.5f} | "
+                         f"{r['on'][k]:.5f} | {r['off']['ms']:.1f} | {r['on']['ms']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
 # ----- report -------------------------------------------------------------------------
 
 _PEERS = (("open3d_default", "Open3D default"), ("open3d_1000", "Open3D 1000 it"),
@@ -486,8 +537,17 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
                         help="1e3 and 1e4 points, 30 %% outliers, one cloud, two scenes")
+    parser.add_argument("--refit", action="store_true",
+                        help="only jaxfit's errors against N with the final refit on and off")
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
+    if args.refit:
+        rows = refit_table()
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "peers.refit.json").write_text(json.dumps(rows, indent=1))
+        (args.out / "peers.refit.md").write_text(refit_markdown(rows))
+        print((args.out / "peers.refit.md").read_text())
+        return
     methods = available()
     if args.quick:
         settings = dict(sizes=SIZES[:2], outliers=(0.3,), clouds=1, repeats=2)
