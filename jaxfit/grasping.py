@@ -56,7 +56,7 @@ CANDIDATE_BUCKET = 64
 MIN_POINTS_BUCKET = 1024
 #: Surface-seeded candidates per part (``_seeded_candidates``): points drawn per part,
 #: each approached from four directions.
-SEEDS_PER_PART = 24
+SEEDS_PER_PART = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,8 +304,20 @@ PROPOSERS = {"box": _box_candidates, "cylinder": _cylinder_candidates,
              "plane": _plane_candidates}
 
 
+def _spread(points, count: int, rng) -> np.ndarray:
+    """(count,) indices of points spread over ``points`` (n, 3): farthest-point sampling
+    from a random first point, so the seeds reach the part's ends and edges (a rim) rather
+    than landing where the points are dense."""
+    pick = [int(rng.integers(len(points)))]
+    gap = np.linalg.norm(points - points[pick[0]], axis=1)
+    for _ in range(count - 1):
+        pick.append(int(np.argmax(gap)))
+        gap = np.minimum(gap, np.linalg.norm(points - points[pick[-1]], axis=1))
+    return np.asarray(pick)
+
+
 def _seeded_candidates(model, points, normals, rng, count: int = SEEDS_PER_PART):
-    """Candidates on ``count`` of a part's points (drawn with ``rng``), in the cloud's
+    """Candidates on ``count`` of a part's points (spread over it, ``_spread``), in the cloud's
     coordinates: closing along the point's normal (the pad lands on that surface), the
     approach line through the point along the four directions perpendicular to the
     normal that follow the primitive's axes (cylinder and cone: along the axis and around
@@ -315,7 +327,7 @@ def _seeded_candidates(model, points, normals, rng, count: int = SEEDS_PER_PART)
     handle) grasps across its thin side; the filter drops the rest."""
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
-    pick = rng.choice(len(points), size=min(count, len(points)), replace=False)
+    pick = _spread(points, min(count, len(points)), rng)
     p, n = points[pick], normals[pick]
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     axes = np.asarray(model.transform(), np.float64)[:3, :3]
@@ -373,8 +385,23 @@ def candidates(decomposition, *, key=0, normals=None, seeds: int = SEEDS_PER_PAR
 # The filter (JAX): one call for all candidates against all points.
 
 
+#: Candidates filtered together in one step of ``_filter``'s loop: a (32, N) block of
+#: each per-point quantity stays in the cache; the whole (C, N) at once ran ~15x slower
+#: (0.40 s against 0.025 s for the duck's 584 candidates, 2 shared cores).
+FILTER_CHUNK = 32
+
+
 @jax.jit
 def _filter(points, valid, normals, centres, rotations, com, dims):
+    """``_filter_block`` over the candidates (C,) in chunks of ``FILTER_CHUNK`` (C a
+    multiple of it), its outputs joined."""
+    out = jax.lax.map(
+        lambda block: _filter_block(points, valid, normals, *block, com, dims),
+        (centres.reshape(-1, FILTER_CHUNK, 3), rotations.reshape(-1, FILTER_CHUNK, 3, 3)))
+    return tuple(o.reshape((-1, *o.shape[2:])) for o in out)
+
+
+def _filter_block(points, valid, normals, centres, rotations, com, dims):
     """For candidates (C,) against points (N,): whether each passes, its origin, opening,
     contact width, pad contacts, antipodal quality and score (module docstring). ``dims``
     holds max_width, finger_depth, finger_width / 2, finger_thickness, palm_depth,
@@ -436,9 +463,9 @@ def _filter(points, valid, normals, centres, rotations, com, dims):
             return jnp.sum(w * a, axis=1) / n
 
         # The patch's radius in the pad's plane: RMS distance of its points from their
-        # centroid across the pad (x) and along the finger (z).
-        spread = jnp.sqrt(jnp.maximum(mean(x * x) - mean(x) ** 2 + mean(z0 * z0)
-                                      - mean(z0) ** 2, 0.0))
+        # centroid across the pad (x) and along the finger (z) (centred first: float32).
+        dx, dz = x - mean(x)[:, None], z0 - mean(z0)[:, None]
+        spread = jnp.sqrt(mean(dx * dx + dz * dz))
         return mean(cos), (w @ points) / n[:, None], spread
 
     q_lo, c_lo, r_lo = pad(band & (y - lo[:, None] <= tol))
