@@ -21,6 +21,10 @@ MAX_EXTENT = 10.0
 # A gap of this many thresholds along a fitted surface separates its points from strays
 # (outliers near the surface's unbounded continuation) when bounds are fixed.
 GAP_THRESHOLDS = 5.0
+#: Values expected per bin of ``main_interval`` at least, over the values' central 90 %:
+#: bins of GAP_THRESHOLDS alone held a few points each on sparse clouds at tight
+#: thresholds, and their chance gaps cut the bounds (docs/shapes.md).
+MIN_PER_BIN = 16
 
 
 def safe_norm(v, axis=-1):
@@ -157,14 +161,19 @@ def sign_canonical(vectors):
 
 
 def main_interval(values, gap):
-    """(lo, hi) of the main run of values (N,) along an axis: bins ``gap`` wide holding at
-    least a fifth of the fullest bin's count, the contiguous run of them with the most
-    values. Strays (outliers near a surface's unbounded continuation) are far sparser
-    than the surface, so they fall below the cut and do not stretch the bounds.
+    """(lo, hi) of the main run of values (N,) along an axis: bins at least ``gap`` wide
+    holding at least a fifth of the fullest bin's count, the contiguous run of them with
+    the most values. Strays (outliers near a surface's unbounded continuation) are far
+    sparser than the surface, so they fall below the cut and do not stretch the bounds.
+    Bins are widened until they expect MIN_PER_BIN values over the central 90 %, so the
+    chance gaps of a sparse sample do not cut it.
 
     Only occupied bins are counted when there are far more bins than values (a gap far
     below the spread), so memory is O(N) for any gap."""
     v = np.asarray(values, dtype=np.float64)
+    k05, k95 = int(0.05 * (len(v) - 1)), int(0.95 * (len(v) - 1))
+    q05, q95 = np.partition(v, [k05, k95])[[k05, k95]]  # (one partition, not a sort)
+    gap = max(gap, MIN_PER_BIN * (q95 - q05) / (0.9 * len(v)))
     lo = v.min()
     with np.errstate(over="ignore"):  # (a gap below the spread / 1e308: one inf bin)
         cell = np.floor((v - lo) / gap)  # bin of each value (float: no int overflow)
