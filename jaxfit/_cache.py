@@ -119,10 +119,12 @@ def _jax_configured() -> bool:
 
 
 def enable(environ=os.environ) -> str | None:
-    """Turn the persistent cache on as configured by the environment; called on import.
+    """Choose jaxfit's cache folder as configured by the environment (created if
+    missing); called on import. JAX's own settings are left as they are: jaxfit's
+    compilations use the folder through ``scope``.
 
-    Returns the folder jaxfit set, or None when it set none (off, JAX already configured by
-    the user, or the folder unusable, which warns once).
+    Returns the folder jaxfit chose, or None when it chose none (off, JAX already
+    configured by the user, or the folder unusable, which warns once).
     """
     global _enabled_dir
     try:
