@@ -290,7 +290,7 @@ def _detect(source: str, folder: Path, options: dict) -> dict:
 
 
 def _decompose(source: str, folder: Path, options: dict) -> dict:
-    """parts.json, decomposition.glb, preview.png (``Decomposition.save``); the PSDA's
+    """parts.json, points.npy, decomposition.glb, preview.png (``Decomposition.save``); the PSDA's
     mean distance of every point to its part's primitive."""
     from .decomposition import decompose
     from .decomposition.psda import SHAPES, overall_distance
