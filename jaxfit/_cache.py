@@ -142,10 +142,31 @@ def enable(environ=os.environ) -> str | None:
                       f"set {ENV_DIR} to another folder or {ENV_SWITCH}=0 to silence this",
                       RuntimeWarning, stacklevel=2)
         return None
-    # (JAX's settings are set only around jaxfit's own compilations: see ``scope``.)
     _enabled_dir = str(path)
+    if _scoped_settings() is None:  # another JAX: for the whole process, as before
+        jax.config.update("jax_compilation_cache_dir", _enabled_dir)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    # (else JAX's settings are set only around jaxfit's own compilations: ``scope``)
     _guard_jax_entries()
     return _enabled_dir
+
+
+def _scoped_settings():
+    """JAX's thread-local context managers of (the cache folder, the least compile time,
+    the least entry size) that ``scope`` sets (jax 0.10.2's ``jax._src.config`` states),
+    or None where this JAX has them under other names."""
+    try:
+        from jax._src import config
+
+        states = (config.compilation_cache_dir,
+                  config.persistent_cache_min_compile_time_secs,
+                  config.persistent_cache_min_entry_size_bytes)
+        if not all(callable(state) for state in states):
+            return None
+        return states
+    except Exception:
+        return None
 
 
 _inside = threading.local()  # .depth: how many ``scope`` blocks this thread is in
@@ -157,25 +178,24 @@ def scope():
     every executable (thresholds 0 s and -1 bytes: ours compile in well under JAX's 1 s
     default, and -1 also stops JAX from raising the size floor for the filesystem);
     a no-op when jaxfit configured no folder. Outside it JAX's settings are the user's."""
-    if _enabled_dir is None:
+    states = None if _enabled_dir is None else _scoped_settings()
+    if states is None:  # (no folder, or set for the whole process by ``enable``)
         yield
         return
-    from jax._src import config
-
+    folder, least_time, least_size = states
     _inside.depth = getattr(_inside, "depth", 0) + 1
     try:
-        with (config.compilation_cache_dir(_enabled_dir),
-              config.persistent_cache_min_compile_time_secs(0.0),
-              config.persistent_cache_min_entry_size_bytes(-1)):
+        with folder(_enabled_dir), least_time(0.0), least_size(-1):
             yield
     finally:
         _inside.depth -= 1
 
 
 def _outside_scope() -> bool:
-    """Whether JAX's cache is asked outside jaxfit's ``scope`` while it is jaxfit's
-    folder that JAX's cache object was made for (JAX makes one, on its first use)."""
-    return _enabled_dir is not None and not getattr(_inside, "depth", 0)
+    """Whether JAX's cache is asked outside jaxfit's ``scope`` (always False where the
+    folder was set for the whole process)."""
+    return (_enabled_dir is not None and not getattr(_inside, "depth", 0)
+            and _scoped_settings() is not None)
 
 
 def compilation_cache_dir() -> str | None:

@@ -608,3 +608,34 @@ def test_a_stored_program_that_fails_when_run_is_dropped(tmp_path, monkeypatch):
     np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)
     assert not path.exists()
     np.testing.assert_array_equal(again(x, factor=3), 3 * x * x)  # the plain jit from now on
+
+
+def test_a_jax_without_scoped_settings_gets_the_folder_for_the_process(tmp_path, monkeypatch):
+    updates = {}
+    monkeypatch.setattr(_cache.jax.config, "update", lambda name, value: updates.update(
+        {name: value}))
+    monkeypatch.setattr(_cache, "_enabled_dir", None)
+    monkeypatch.setattr(_cache, "_jax_configured", lambda: False)
+    monkeypatch.setattr(_cache, "_scoped_settings", lambda: None)
+    folder = tmp_path / "cache"
+    assert _cache.enable({_cache.ENV_DIR: str(folder)}) == str(folder)
+    assert updates == {"jax_compilation_cache_dir": str(folder),
+                       "jax_persistent_cache_min_compile_time_secs": 0.0,
+                       "jax_persistent_cache_min_entry_size_bytes": -1}
+    assert not _cache._outside_scope()  # (JAX's cache then serves every compilation)
+    with _cache.scope():  # a no-op
+        assert _cache.jax.config.jax_compilation_cache_dir != str(folder)
+
+
+def test_scope_sets_the_folder_in_its_thread_only(tmp_path, monkeypatch):
+    monkeypatch.setattr(_cache, "_enabled_dir", str(tmp_path))
+    seen, before = {}, _cache.jax.config.jax_compilation_cache_dir  # (the process's own)
+    with _cache.scope():
+        seen["inside"] = _cache.jax.config.jax_compilation_cache_dir
+        other = threading.Thread(target=lambda: seen.update(
+            other=_cache.jax.config.jax_compilation_cache_dir))
+        other.start()
+        other.join()
+        assert not _cache._outside_scope()
+    assert seen == {"inside": str(tmp_path), "other": before}
+    assert _cache._outside_scope() and _cache.jax.config.jax_compilation_cache_dir == before
