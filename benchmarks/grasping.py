@@ -2,19 +2,22 @@
 
 Run: ``python -m benchmarks.grasping``. For each of the six benchmark meshes (the YCB
 soup can and cracker box, the GraspIt mug and phone, the pybullet mug, the Inventor duck;
-scales and up axes as tests/test_sim.py's) it decomposes 4,000 surface points (key 0),
-plans grasps for an 8.5 cm jaw (4 cm fingers, 2 cm pads) with ``jaxfit.grasps`` twice
-(the second timed warm), and runs ``jaxfit.io.trial.lift_trial`` on the top 20 grasps
+scales and up axes in ``MODELS``; the GraspIt mug stands on its base, -Y up) it
+decomposes 4,000 surface points (key 0), plans grasps for an 8.5 cm jaw (4 cm fingers,
+2 cm pads) with ``jaxfit.grasps`` (a first call, then timed warm: once told of the floor,
+``support=`` the plane through the cloud's lowest point, as a robot that sees the table
+is, and once floating, without), and runs ``jaxfit.io.trial.lift_trial`` on the top 20 grasps
 against the *original mesh*, as CoACD's convex pieces (``pip install coacd``; threshold
 0.05, seed 0; without coacd, or with ``--pieces bodies``, one convex piece per connected
 body): approach from the pre-grasp, close, lift 10 cm, hold 2 s. Each grasp is tried
-twice: with the object standing on a floor (grasps from below then hit the floor), and
-floating without gravity until the fingers have closed (the grasp alone). It writes the
+twice: with the object standing on a floor (the grasps planned with the floor given),
+and floating without gravity until the fingers have closed (the grasp alone; the grasps
+planned without a support). It writes the
 top-1 / top-5 / top-20 success rates and the times to ``benchmarks/results/grasping.md``
 and each grasp's outcome to ``benchmarks/results/grasping.json``.
 
 Baseline (a second table): antipodal grasps sampled directly on the mesh
-(``antipodal``), the same count, gripper and trials.
+(``antipodal``), the same count, gripper and trials, told of the floor the same way.
 """
 
 from __future__ import annotations
@@ -235,15 +238,16 @@ def main():
         f"{100 * np.mean(base_totals[key]):.0f} %" for key in base_totals) + " | |")
     text = ["# Lift trials of jaxfit's grasps (`python -m benchmarks.grasping`)", "",
             __doc__.split("\n\n")[1].replace("\n", " "), "",
-            f"Convex pieces: {args.pieces}. From below: grasps approaching upwards "
-            "(approach . up > 0.5), which a floor blocks. "
+            f"Convex pieces: {args.pieces}. Grasps: kept on the floor / floating. From "
+            "below: grasps of the floating plan approaching upwards (approach . up > "
+            "0.5), which a floor would block. Plan warm: the slower of the two plans. "
             "A model without grasps counts as 0 in the means. "
             "Success: the object rose at least 5 cm and its point that lay between the "
             "fingertips when they closed is still between the fingers after the hold. "
             "top-k: successes among the k best grasps (fewer when fewer were found).", "",
             *lines, "", "Baseline: antipodal grasps sampled on the mesh (``antipodal``: 20,000 "
             "random point pairs, quality >= 0.8, 8 approaches each, the first that clears "
-            "the points), the same trials:", "", *base_lines, ""]
+            "the points and, on the floor, the floor), the same trials:", "", *base_lines, ""]
     (RESULTS / "grasping.md").write_text("\n".join(text))
     (RESULTS / "grasping.json").write_text(json.dumps(record, indent=1) + "\n")
 

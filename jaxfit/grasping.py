@@ -13,10 +13,15 @@ frame (``model.transform()``, docs/robot.md):
   rotations about each;
 - cone: radial at four heights and eight azimuths (both closings), from the base and from
   the apex at four rotations;
-- plane (a bounded patch): from eight directions in its plane, closing across it.
+- plane (a bounded patch): from eight directions in its plane, closing across it;
+- every part, whatever its primitive: 16 of its points spread over it (farthest-point
+  sampling), closing along the point's normal, approached along the four directions
+  perpendicular to it that follow the primitive's axes: on a hollow cylinder's wall these
+  are rim grasps (along the axis from the open end, one finger inside the wall, one
+  outside), on a thin part (a handle) grasps across its thin side.
 
-Azimuths and rotations are offset at random per part (NumPy, seeded from ``key``: the
-same key gives the same grasps). All candidates of all parts are then filtered and
+Azimuths, rotations and the seeds' first point are drawn per part (NumPy, seeded from
+``key``: the same key gives the same grasps). All candidates of all parts are then filtered and
 scored in one jitted JAX call against the object's points (the whole cloud, so a grasp
 on one part also avoids the others): the open hand slides along its approach axis until
 its fingers or palm would touch a point, or its fingertips reach the approach line's
@@ -25,6 +30,13 @@ centre; the points between the fingers are the closing region, the jaws close on
 when the region holds enough points, the contact width fits (``max_width``), the gripper
 at that opening (palm and finger boxes) touches no point, and the surface normals at the
 points nearest the two finger pads are close to the closing axis (antipodal quality).
+The pre-grasp opening is then as wide as the fingers can open there without touching a
+point. With ``support`` (a table plane) grasps whose gripper boxes at the grasp or the
+pre-grasp would reach the table are dropped; near-duplicates of better grasps are
+dropped; the rest are ranked by the score: antipodal quality x alignment of the contacts
+with the closing axis x patch / (patch + lever), the pads' contact patch radius against
+the lever of the centre of mass about the closing line (gravity's torque about that line
+is what the pads' friction must resist).
 
 Grasp frame (``Grasps.poses``, 4x4 in the cloud's coordinates): origin midway between
 the fingertips; local +Z the approach direction (from the palm towards the fingertips,
@@ -131,13 +143,15 @@ class Grasps:
 
     poses : (K, 4, 4) grasp frames in the cloud's coordinates (module docstring: +Z
         approach, +Y closing axis, origin midway between the fingertips).
-    widths : (K,) pre-grasp opening: the contact width plus the clearance on each side,
-        at most ``max_width``.
+    widths : (K,) pre-grasp opening: as wide as the fingers open at the grasp pose
+        without touching a point (within the region the approach swept), at least the
+        contact width plus the clearance on each side, at most ``max_width``.
     contact_widths : (K,) distance between the outermost points the jaws close on.
     contacts : (K, 2, 3) centroids of the points nearest the -Y and +Y finger pads.
     parts : (K,) index of the part (``Decomposition.parts``) whose primitive proposed it.
     primitives : (K,) that primitive's name.
-    scores : (K,) antipodal quality x alignment x centre-of-mass preference, in [0, 1].
+    scores : (K,) antipodal quality x alignment x patch / (patch + lever), in [0, 1]
+        (module docstring).
     antipodal : (K,) the lower of the two pads' mean |normal . closing axis|.
     gripper : the ParallelJaw.
     num_candidates : candidates proposed before filtering.
@@ -406,8 +420,8 @@ def _filter_block(points, valid, normals, centres, rotations, com, dims):
     contact width, pad contacts, antipodal quality and score (module docstring). ``dims``
     holds max_width, finger_depth, finger_width / 2, finger_thickness, palm_depth,
     palm_width / 2, clearance, the minimum antipodal quality, the minimum points in the
-    closing region and the object's size (for the centre-of-mass preference)."""
-    w0, fd, hw, t, pd, hp, cl, min_q, min_n, size = (dims[i] for i in range(10))
+    closing region."""
+    w0, fd, hw, t, pd, hp, cl, min_q, min_n = (dims[i] for i in range(9))
     big = jnp.asarray(jnp.finfo(points.dtype).max / 4, points.dtype)
     # Points in each candidate's frame: (p - c) R, as one (N, 3) x (C, 3, 3) product.
     shift = jnp.einsum("cj,cjk->ck", centres, rotations)
@@ -453,7 +467,9 @@ def _filter_block(points, valid, normals, centres, rotations, com, dims):
     # ``tol`` of each pad.
     closing = rotations[:, :, 1]
     cos = jnp.abs(jnp.einsum("nj,cj->cn", normals, closing))
-    tol = jnp.maximum(2 * cl, 0.05 * contact_width)[:, None]
+    # (at most 0.45 of the contact width: on a wall thinner than twice the clearance the
+    # two pads keep apart sets, its two faces)
+    tol = jnp.minimum(jnp.maximum(2 * cl, 0.05 * contact_width), 0.45 * contact_width)[:, None]
 
     def pad(near):
         w = near.astype(points.dtype)
@@ -609,12 +625,12 @@ def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None
     models = [p.model for p in decomposition.parts]
     com = mass_properties(models)[1] if models else points.mean(axis=0)
     lo, hi = points.min(axis=0), points.max(axis=0)
-    shift, size = 0.5 * (lo + hi), max(float(np.linalg.norm(hi - lo)) / 2, 1e-300)
+    shift = 0.5 * (lo + hi)
 
     if count:
         ok, origin, width, contact_width, contacts, antipodal, score = _run_filter(
             points - shift, normals, centres - shift, rotations, com - shift, gripper,
-            min_quality, min_points, size)
+            min_quality, min_points)
         width = np.minimum(width, gripper.max_width)  # float32's rounding of max_width
         keep = np.flatnonzero(ok)
         keep = keep[np.argsort(-score[keep], kind="stable")]
@@ -643,8 +659,7 @@ def grasps(decomposition, gripper: ParallelJaw, *, key=0, top: int | None = None
         gripper=gripper, num_candidates=count, seconds=time.perf_counter() - started)
 
 
-def _run_filter(points, normals, centres, rotations, com, gripper, min_quality, min_points,
-                size):
+def _run_filter(points, normals, centres, rotations, com, gripper, min_quality, min_points):
     """``_filter`` on padded float32 copies (points to a power of two, candidates to a
     multiple of ``CANDIDATE_BUCKET``), its outputs cut back to the C candidates, float64."""
     count, dtype = len(centres), np.float32
@@ -659,8 +674,8 @@ def _run_filter(points, normals, centres, rotations, com, gripper, min_quality, 
     rot[:count] = rotations
     g = gripper
     dims = np.array([g.max_width, g.finger_depth, g.finger_width / 2, g.finger_thickness,
-                     g.palm_depth, g.palm_width / 2, g.clearance, min_quality, min_points,
-                     size], dtype)
+                     g.palm_depth, g.palm_width / 2, g.clearance, min_quality, min_points],
+                    dtype)
     out = _filter(pts, valid, nrm, cen, rot, np.asarray(com, dtype), dims)
     ok, *rest = (np.asarray(a)[:count] for a in out)
     return (ok, *(a.astype(np.float64) for a in rest))

@@ -11,7 +11,7 @@ import trimesh
 from conftest import benchmark_decomposition
 
 import jaxfit
-from benchmarks.grasping import MODELS  # the meshes: file, scale to metres, up axis
+from benchmarks.grasping import MODELS, support_of  # the meshes: file, scale, up
 from jaxfit import Box, Cone, Cylinder, Decomposition, Grasps, ParallelJaw, Part, Sphere, grasps
 
 GRIPPER = ParallelJaw(max_width=0.085, finger_depth=0.04, finger_width=0.02)
@@ -56,7 +56,34 @@ def colliding(grasp_set: Grasps, points) -> np.ndarray:
     return out
 
 
-def _assert_sound(g: Grasps, points):
+def below_support(grasp_set: Grasps, up, height) -> np.ndarray:
+    """(K,) whether a corner of a grasp's palm or finger boxes, at the grasp or at its
+    pre-grasp (``Grasps.pregrasp()``), lies below the plane p . up = height plus the
+    clearance: an oracle apart from ``clears_support``."""
+    out = np.zeros(len(grasp_set), bool)
+    for poses in (grasp_set.poses, grasp_set.pregrasp()):
+        for i, (pose, width) in enumerate(zip(poses, grasp_set.widths, strict=True)):
+            for lo, hi in grasp_set.gripper.boxes(width):
+                corners = np.array([[(lo, hi)[b >> k & 1][k] for k in range(3)]
+                                    for b in range(8)])
+                world = corners @ pose[:3, :3].T + pose[:3, 3]
+                out[i] |= bool(np.any(world @ up < height + grasp_set.gripper.clearance - 1e-9))
+    return out
+
+
+def near_duplicates(g: Grasps, separation: float, degrees: float) -> int:
+    """How many pairs of grasps lie within ``separation`` of each other with approach and
+    closing line within ``degrees``."""
+    cos, count = np.cos(np.radians(degrees)), 0
+    for i in range(len(g)):
+        for j in range(i):
+            count += bool(np.linalg.norm(g.poses[i, :3, 3] - g.poses[j, :3, 3]) <= separation
+                          and g.approach[i] @ g.approach[j] >= cos
+                          and abs(g.closing[i] @ g.closing[j]) >= cos)
+    return count
+
+
+def _assert_sound(g: Grasps, points, *, distinct: bool = True):
     assert len(g) > 0
     assert not colliding(g, points).any()
     assert np.all(g.widths <= g.gripper.max_width + 1e-12)
@@ -77,6 +104,29 @@ def _assert_sound(g: Grasps, points):
     assert np.all(np.abs(local[..., 1]) <= g.widths[:, None] / 2 + tol)
     assert np.all((local[..., 2] >= -g.gripper.finger_depth - tol) & (local[..., 2] <= tol))
     assert np.all(local[:, 0, 1] < local[:, 1, 1])
+    # The pre-grasp opening holds the contact width and the clearance on both sides.
+    assert np.all(g.widths >= np.minimum(g.contact_widths + 2 * g.gripper.clearance,
+                                         g.gripper.max_width) - 1e-6)
+    if distinct:  # the default separation
+        assert near_duplicates(g, g.gripper.finger_width, 30.0) == 0
+
+
+def sampled(meshes_and_models, count=2000, seed=0):
+    """A Decomposition whose parts are the given (mesh, model) pairs, with ``count``
+    points on the meshes' surfaces (the planner reads only the parts' models, their
+    points and the cloud), and the points' exact normals (their faces')."""
+    meshes = [m for m, _ in meshes_and_models]
+    union = trimesh.util.concatenate(meshes)
+    points, faces = trimesh.sample.sample_surface(union, count, seed=seed)
+    owner = np.repeat(np.arange(len(meshes)), [len(m.faces) for m in meshes])[faces]
+    parts = []
+    for index, (_, model) in enumerate(meshes_and_models):
+        idx = np.flatnonzero(owner == index)
+        lo, hi = points[idx].min(axis=0), points[idx].max(axis=0)
+        box = Box(0.5 * (lo + hi), np.eye(3), hi - lo)
+        parts.append(Part(idx, box, model.name, model.name, model, 0.0, {}))
+    return (Decomposition(np.asarray(points, np.float64), tuple(parts), None, 0.0),
+            np.asarray(union.face_normals)[faces])
 
 
 @pytest.mark.parametrize("name", ["box", "cylinder", "sphere", "cone"])
@@ -142,6 +192,83 @@ def test_cone_radial_and_from_base_and_apex(objects):
     assert set(g.primitives) == {"cone"}
 
 
+def test_rim_grasps_on_a_cup_wider_than_the_jaw():
+    """A cup 11 cm across (4 mm wall, closed bottom at z = -5 cm, open top) is too wide for
+    the 8.5 cm jaw everywhere but its rim (a chord that fits meets the wall more than 37
+    degrees off the closing axis): every grasp approaches down the axis from the open end,
+    closing radially across the wall, one finger inside."""
+    wall = trimesh.creation.annulus(r_min=0.051, r_max=0.055, height=0.1)
+    bottom = trimesh.creation.cylinder(radius=0.051, height=0.004)
+    bottom.apply_translation([0.0, 0.0, -0.048])
+    model = Cylinder(np.zeros(3), np.array([0.0, 0.0, 1.0]), np.float64(0.055), np.float64(0.1))
+    d, normals = sampled([(trimesh.util.concatenate([wall, bottom]), model)], count=3000)
+    g = grasps(d, GRIPPER, key=0, normals=normals)
+    _assert_sound(g, d.points)
+    assert len(g) >= 4
+    assert np.all(g.approach[:, 2] < -0.95)  # from the open top, down the axis
+    radial = g.poses[:, :2, 3] / np.linalg.norm(g.poses[:, :2, 3], axis=1, keepdims=True)
+    assert np.all(np.abs(np.sum(g.closing[:, :2] * radial, axis=1)) > 0.9)
+    np.testing.assert_allclose(np.linalg.norm(g.poses[:, :2, 3], axis=1), 0.053, atol=0.004)
+    assert np.all(g.contact_widths < 0.01)
+    assert np.all(g.poses[:, 2, 3] > 0.01)  # the fingertips near the rim, not the bottom
+
+
+def test_handle_grasped_across_its_thin_side():
+    """A 12 cm block (too wide for the jaw) with a thin fin (2 x 1.2 x 8 cm) on its +X
+    face: every grasp is on the fin, across its 1.2 cm side."""
+    block = Box(np.zeros(3), np.eye(3), np.array([0.12, 0.12, 0.12]))
+    fin = Box(np.array([0.07, 0.0, 0.0]), np.eye(3), np.array([0.02, 0.012, 0.08]))
+    d, normals = sampled([(block.to_mesh(), block), (fin.to_mesh(), fin)], count=3000)
+    g = grasps(d, GRIPPER, key=0, normals=normals, separation=0.0)  # lines 2 cm apart
+    _assert_sound(g, d.points, distinct=False)
+    assert len(g) >= 3 and set(g.parts) == {1}
+    np.testing.assert_allclose(np.abs(g.closing[:, 1]), 1.0, atol=0.05)
+    np.testing.assert_allclose(g.contact_widths, 0.012, atol=0.003)
+
+
+def test_support_drops_grasps_that_reach_the_table(objects):
+    """The 6 x 16 x 21 cm box standing on a table at its bottom face (z = -10.5 cm): told
+    of the table, no grasp (nor its pre-grasp) puts a gripper box below it, so none comes
+    from below; without, some do."""
+    d, up = objects["box"], np.array([0.0, 0.0, 1.0])
+    floating = grasps(d, GRIPPER, key=0)
+    assert (floating.approach[:, 2] > 0.5).any() and below_support(floating, up, -0.105).any()
+    g = grasps(d, GRIPPER, key=0, support=(2 * up, -0.105))  # up need not be unit
+    _assert_sound(g, d.points)
+    assert not below_support(g, up, -0.105).any()
+    assert not (g.approach[:, 2] > 0.5).any()
+    assert len(g) < len(floating)
+    assert np.array_equal(jaxfit.grasping.clears_support(g.poses, g.widths, GRIPPER, up, -0.105),
+                          np.ones(len(g), bool))
+
+
+def test_near_duplicates_are_dropped(objects):
+    d = objects["cylinder"]
+    g, every = grasps(d, GRIPPER, key=0), grasps(d, GRIPPER, key=0, separation=0.0)
+    assert near_duplicates(g, GRIPPER.finger_width, 30.0) == 0
+    assert near_duplicates(every, GRIPPER.finger_width, 30.0) > 0
+    assert len(every) > len(g)
+    # Each dropped grasp is a near-duplicate of a kept one that scores at least as well.
+    kept = {tuple(np.round(p[:3, 3], 9)) for p in g.poses}
+    for pose, score in zip(every.poses, every.scores, strict=True):
+        if tuple(np.round(pose[:3, 3], 9)) in kept:
+            continue
+        close = ((np.linalg.norm(g.poses[:, :3, 3] - pose[:3, 3], axis=1) <= 0.02)
+                 & (g.approach @ pose[:3, 2] >= np.cos(np.radians(30)))
+                 & (np.abs(g.closing @ pose[:3, 1]) >= np.cos(np.radians(30))))
+        assert close.any() and g.scores[close].max() >= score - 1e-12
+
+
+def test_score_prefers_a_short_lever(objects):
+    """On the 6 x 16 x 21 cm box, grasps whose closing line passes nearer the centre of
+    mass score higher (the pads' patches alike)."""
+    g = grasps(objects["box"], GRIPPER, key=0)
+    arm = -g.contacts.mean(axis=1)  # the centre of mass is the origin
+    lever = np.linalg.norm(arm - np.sum(arm * g.closing, axis=1, keepdims=True) * g.closing,
+                           axis=1)
+    assert np.corrcoef(lever, g.scores)[0, 1] < -0.5
+
+
 def test_same_key_same_grasps(objects):
     d = objects["sphere"]
     a, b = grasps(d, GRIPPER, key=3), grasps(d, GRIPPER, key=3)
@@ -199,6 +326,15 @@ def test_bad_arguments(objects):
         grasps(objects["box"], GRIPPER, top=0)
     with pytest.raises(ValueError, match="min_quality"):
         grasps(objects["box"], GRIPPER, min_quality=2)
+    for support, match in [((np.zeros(3), 0.0), "up"), (([0, 0, 1, 0], 0.0), "up"),
+                           (([0, 0, 1], float("nan")), "height"), ((0, 0, 1), "support"),
+                           (([0, 0, 1], "0"), "height")]:
+        with pytest.raises(ValueError, match=match):
+            grasps(objects["box"], GRIPPER, support=support)
+    with pytest.raises(ValueError, match="separation"):
+        grasps(objects["box"], GRIPPER, separation=-1.0)
+    with pytest.raises(ValueError, match="separation_degrees"):
+        grasps(objects["box"], GRIPPER, separation_degrees=200)
 
 
 @pytest.mark.slow  # ~40 s with an empty compilation cache (the decomposition's fits)
@@ -218,12 +354,22 @@ def test_decomposed_soup_can(data_dir):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", list(MODELS))
 def test_benchmark_meshes_grasps_do_not_collide(data_dir, name):
-    """The six benchmark meshes at 4,000 points (decomposed once, for tests/test_sim.py too)."""
-    scale = MODELS[name][1]
+    """The six benchmark meshes at 4,000 points (decomposed once, for tests/test_sim.py too):
+    no grasp collides with the points, floating or told of the floor (then none reaches
+    it), and the same key gives the same grasps."""
+    _, scale, up = MODELS[name]
     d = benchmark_decomposition(name)
     gripper = ParallelJaw(max_width=0.085 / scale, finger_depth=0.04 / scale,
                           finger_width=0.02 / scale)
-    _assert_sound(grasps(d, gripper, key=0), d.points)
+    g = grasps(d, gripper, key=0)
+    _assert_sound(g, d.points)
+    floor = support_of(d.points, up)
+    on_floor = grasps(d, gripper, key=0, support=floor)
+    _assert_sound(on_floor, d.points)
+    assert not below_support(on_floor, *floor).any()
+    again = grasps(d, gripper, key=0, support=floor)
+    np.testing.assert_array_equal(again.poses, on_floor.poses)
+    np.testing.assert_array_equal(again.widths, on_floor.widths)
 
 
 def test_save_writes_json_and_preview(objects, tmp_path):

@@ -15,7 +15,7 @@ from conftest import benchmark_decomposition
 from scipy.spatial.transform import Rotation
 
 import jaxfit
-from benchmarks.grasping import MODELS  # the meshes: file, scale to metres, up axis
+from benchmarks.grasping import MODELS, up_vector  # the meshes: file, scale, up
 from jaxfit.decomposition import decompose
 from jaxfit.io import sim
 from jaxfit.shapes import Box, Cone, Cylinder, Plane, Sphere, mass_properties
@@ -28,6 +28,13 @@ except ImportError:  # the tests that need it skip
 
 needs_mujoco = pytest.mark.skipif(
     mujoco is None, reason="mujoco is not installed (pip install -e '.[sim]')")
+try:
+    import pybullet
+except ImportError:  # the tests that need it skip
+    pybullet = None
+
+needs_pybullet = pytest.mark.skipif(
+    pybullet is None, reason="pybullet is not installed (pip install -e '.[sim]')")
 
 DROP = 0.02  # m above the floor
 SETTLE = 2.0  # s simulated
@@ -121,6 +128,67 @@ def assert_rests(path, up=2):
     assert finite, "the simulation produced NaN"
     assert speed < REST_SPEED and spin < REST_SPIN, (speed, spin)
     assert -2e-3 < above < 2e-3, f"lowest point {above:.4f} m from the floor"
+
+
+def pybullet_parts(path):
+    """The URDF at ``path`` loaded by pybullet (DIRECT, its own inertia, native cylinders):
+    the number of links besides the base, and per collision shape its pybullet geometry
+    type, dimensions and world centre, then the base's world bounds, mass and centre of
+    mass."""
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        body = pybullet.loadURDF(str(path), physicsClientId=client,
+                                 flags=pybullet.URDF_USE_INERTIA_FROM_FILE
+                                 | pybullet.URDF_USE_IMPLICIT_CYLINDER)
+        position, quat = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
+        rot = np.array(pybullet.getMatrixFromQuaternion(quat)).reshape(3, 3)
+        shapes = [(s[2], np.array(s[3]), np.array(position) + rot @ np.array(s[5]))
+                  for s in pybullet.getCollisionShapeData(body, -1, physicsClientId=client)]
+        lo, hi = pybullet.getAABB(body, -1, physicsClientId=client)
+        mass = pybullet.getDynamicsInfo(body, -1, physicsClientId=client)[0]
+        return (pybullet.getNumJoints(body, physicsClientId=client), shapes,
+                (np.array(lo), np.array(hi)), mass, np.array(position))
+    finally:
+        pybullet.disconnect(client)
+
+
+def assert_pybullet_matches(path, models, scale=1.0, density=1000.0):
+    """pybullet reads the URDF as one link with one collision shape per primitive, of
+    its kind (cones as meshes), sizes and centre, the primitives' mass and centre of mass,
+    and bounds that hold the primitives' (bullet's compound bounds are loose: within 5 %
+    of the diagonal)."""
+    links, shapes, (lo, hi), mass, com = pybullet_parts(path)
+    assert links == 0 and len(shapes) == len(models)
+    kinds = {"box": pybullet.GEOM_BOX, "sphere": pybullet.GEOM_SPHERE,
+             "cylinder": pybullet.GEOM_CYLINDER, "plane": pybullet.GEOM_CYLINDER,
+             "cone": pybullet.GEOM_MESH}
+    for (kind, size, centre), m in zip(shapes, models, strict=True):
+        assert kind == kinds[m.name], (m.name, kind)
+        tol = 1e-6 * scale * float(np.max(np.abs(m.bounding_box())))
+        if m.name == "box":
+            np.testing.assert_allclose(size, scale * np.asarray(m.extents), atol=tol)
+        elif m.name == "sphere":
+            assert size[0] == pytest.approx(scale * float(m.radius), abs=tol)
+        elif m.name == "cylinder":
+            np.testing.assert_allclose(size[:2], scale * np.array([m.height, m.radius]),
+                                       atol=tol)
+        if m.name != "cone":  # a mesh's centre is its file's origin
+            np.testing.assert_allclose(centre, scale * np.asarray(m.center), atol=1e-5 * scale
+                                       * float(np.ptp(np.asarray(m.bounding_box()))) + 1e-9)
+    want_mass, want_com, _ = mass_properties(models, density)
+    assert mass == pytest.approx(want_mass * scale**3, rel=1e-6)
+    np.testing.assert_allclose(com, scale * want_com, atol=1e-6 * scale)
+    want_lo, want_hi = (scale * b for b in union_bounds([m.bounding_box() for m in models]))
+    diagonal = float(np.linalg.norm(want_hi - want_lo))
+    assert np.all(lo <= want_lo + 2e-3 * diagonal) and np.all(hi >= want_hi - 2e-3 * diagonal)
+    assert np.all(lo >= want_lo - 0.05 * diagonal) and np.all(hi <= want_hi + 0.05 * diagonal)
+
+
+@needs_pybullet
+def test_urdf_loads_in_pybullet_with_the_same_parts(tmp_path):
+    models = figure()
+    assert_pybullet_matches(sim.write_urdf(models, tmp_path / "fig.urdf", density=1000.0),
+                            models)
 
 
 # ----- the writers, without a simulator ----------------------------------------------------
@@ -349,6 +417,7 @@ def test_cli_sim_options_are_checked_before_any_work(tmp_path, capsys, monkeypat
 @pytest.mark.parametrize("name", list(MODELS))
 def test_benchmark_mesh_models_load_match_and_rest(data_dir, tmp_path, name):
     _, scale, up = MODELS[name]
+    up = int(np.argmax(np.abs(up_vector(up))))  # the drop's axis (either way up rests)
     result = benchmark_decomposition(name)
     mjcf = result.to_mjcf(tmp_path / f"{name}.xml", name=name, scale=scale)
     model, data = loaded(mjcf)
@@ -366,6 +435,9 @@ def test_benchmark_mesh_models_load_match_and_rest(data_dir, tmp_path, name):
                                                             name=name, scale=scale)))
     assert urdf.ngeom == len(result.parts)
     np.testing.assert_array_equal(urdf.geom_type, model.geom_type[geoms])
+    if pybullet is not None:  # the same URDF in a second parser
+        assert_pybullet_matches(tmp_path / f"{name}.urdf",
+                                [p.model for p in result.parts], scale=scale)
 
 
 def test_the_package_exports_the_writers():
