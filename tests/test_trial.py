@@ -103,7 +103,12 @@ def test_units_and_up_axis_do_not_change_the_outcome(planned):
     standing_y = mesh.copy()
     standing_y.apply_transform(turn)
     y_up = lift_trial(standing_y, turn @ g.poses[0], g.widths[0], JAW, up=1)
-    for other in (in_mm, y_up):
+    # Up as a direction, down an axis: the object modelled upside down along -Y.
+    flip = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])  # z -> -y
+    minus_y = mesh.copy()
+    minus_y.apply_transform(flip)
+    down_y = lift_trial(minus_y, flip @ g.poses[0], g.widths[0], JAW, up=(0.0, -1.0, 0.0))
+    for other in (in_mm, y_up, down_y):
         assert bool(other) == bool(base) is True
         assert other.rise == pytest.approx(base.rise, abs=1e-4)
 
@@ -120,6 +125,9 @@ def test_bad_input(planned):
     mesh, g = planned["box"]
     with pytest.raises(ValueError, match="pose"):
         lift_trial(mesh, np.eye(3), 0.05, JAW)
+    for up in (3, (0.0, 0.0, 0.0), (1.0, 0.0)):
+        with pytest.raises(ValueError, match="up"):
+            lift_trial(mesh, g.poses[0], 0.05, JAW, up=up)
     with pytest.raises(ValueError, match="volume"):
         lift_trial(None, g.poses[0], 0.05, JAW, pieces=[np.zeros((4, 3))])
 
