@@ -312,6 +312,11 @@ class Stored:
         self.options = dict(options or {})
         self.kernels: dict = {}  # signature -> callable of the dynamic arguments
         self.unproven: dict = {}  # signature -> file of a program read but not yet run
+        # Signatures whose first call has returned (their program is compiled), and one
+        # lock per signature for that first call: threads (warmup's, the refinement
+        # compiled ahead) may make the same first call at once.
+        self.ready: set = set()
+        self.first_calls: dict = {}
         functools.update_wrapper(self, fn)
 
     def __call__(self, *args, **kwargs):
@@ -321,14 +326,21 @@ class Stored:
         dyn_kwargs = {k: v for k, v in kwargs.items() if k not in self.static_names}
         leaves, tree = jax.tree_util.tree_flatten((dyn_args, dyn_kwargs))
         signature = self._signature(args, kwargs, leaves, tree)
-        kernel = self.kernels.get(signature)
-        if kernel is not None and kernel is not self.jitted and signature not in self.unproven:
-            return kernel(*dyn_args, **dyn_kwargs)  # (compiled by its first call)
+        if signature in self.ready:  # (compiled by its first call)
+            kernel = self.kernels[signature]
+            if kernel is self.jitted:
+                return self.jitted(*args, **kwargs)
+            return kernel(*dyn_args, **dyn_kwargs)
         with scope():  # a call that may trace or compile: in jaxfit's cache folder
             if signature is None:
                 return self.jitted(*args, **kwargs)
-            return self._first_call(signature, kernel, leaves, tree, args, kwargs,
-                                    dyn_args, dyn_kwargs)
+            with self.first_calls.setdefault(signature, threading.Lock()):
+                if signature in self.ready:  # another thread's first call came first
+                    return self(*args, **kwargs)
+                out = self._first_call(signature, self.kernels.get(signature), leaves,
+                                       tree, args, kwargs, dyn_args, dyn_kwargs)
+                self.ready.add(signature)
+                return out
 
     def _signature(self, args, kwargs, leaves, tree):
         """The key of the call's program, or None where the plain jit answers."""

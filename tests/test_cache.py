@@ -639,3 +639,25 @@ def test_scope_sets_the_folder_in_its_thread_only(tmp_path, monkeypatch):
         assert not _cache._outside_scope()
     assert seen == {"inside": str(tmp_path), "other": before}
     assert _cache._outside_scope() and _cache.jax.config.jax_compilation_cache_dir == before
+
+
+def test_threads_making_a_stored_programs_first_call_at_once_agree(tmp_path, monkeypatch):
+    import numpy as np
+
+    traced = []
+    x = np.arange(4, dtype=np.float32)
+    _stored_square(tmp_path, monkeypatch, traced)(x, factor=3)  # written to the folder
+    again = _stored_square(tmp_path, monkeypatch, traced)  # as in the next process
+    start = threading.Barrier(8)
+
+    def call(_):
+        start.wait()
+        return again(x, factor=3)
+
+    # (the first call of a program read from disk had raised KeyError in all threads
+    # but one: warmup's threads met it)
+    with concurrent.futures.ThreadPoolExecutor(8) as pool:
+        found = list(pool.map(call, range(8)))
+    for out in found:
+        np.testing.assert_array_equal(out, 3 * x * x)
+    assert len(traced) == 1 and not again.unproven
