@@ -300,7 +300,7 @@ def _decompose(source: str, folder: Path, options: dict) -> dict:
     result.save(folder)
     assigned = sum(part.indices.size for part in result.parts)
     return {"points": len(result.points), "parts": len(result.parts),
-            "kinds": _kinds(part.winner for part in result.parts),
+            "kinds": _kinds(part.model.name for part in result.parts),
             "inlier_fraction": assigned / len(result.points),
             "mean_distance": overall_distance(result.parts) if result.parts else None}
 
@@ -550,7 +550,9 @@ def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int
             rows[job.name] = row
     todo = [job for job in jobs if job.name not in rows]
     bar = _Progress(len(jobs), len(rows), enabled=progress)
-    if progress:
+    if progress and not todo:
+        print(f"batch: {len(jobs)} models, all done earlier", file=sys.stderr, flush=True)
+    elif progress:
         where = (f"Dask scheduler {getattr(scheduler, 'scheduler_address', scheduler)}"
                  if scheduler is not None else
                  f"{workers} worker process{'es' * (workers != 1)}" if workers else

@@ -211,8 +211,9 @@ def _cmd_detect(args):
 
 
 def _report_scene(scene, num_points, seconds, args):
+    left = len(scene.unassigned)
     print(f"{len(scene.shapes)} primitives from {num_points} points in {seconds:.2f} s "
-          f"({len(scene.unassigned)} points unassigned, threshold {scene.threshold:.4g}):")
+          f"({left} point{'s' * (left != 1)} unassigned, threshold {scene.threshold:.4g}):")
     for i, found in enumerate(scene.shapes):
         _print_model(found.model, f"shape {i}: {len(found.indices)} points,")
     if args.out:
