@@ -133,8 +133,8 @@ def assert_rests(path, up=2):
 def pybullet_parts(path):
     """The URDF at ``path`` loaded by pybullet (DIRECT, its own inertia, native cylinders):
     the number of links besides the base, and per collision shape its pybullet geometry
-    type, dimensions and world centre, then the base's world bounds, mass and centre of
-    mass."""
+    type, dimensions, world centre and world rotation, then the base's world bounds (as
+    bullet computes them), mass and centre of mass."""
     client = pybullet.connect(pybullet.DIRECT)
     try:
         body = pybullet.loadURDF(str(path), physicsClientId=client,
@@ -142,7 +142,8 @@ def pybullet_parts(path):
                                  | pybullet.URDF_USE_IMPLICIT_CYLINDER)
         position, quat = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
         rot = np.array(pybullet.getMatrixFromQuaternion(quat)).reshape(3, 3)
-        shapes = [(s[2], np.array(s[3]), np.array(position) + rot @ np.array(s[5]))
+        shapes = [(s[2], np.array(s[3]), np.array(position) + rot @ np.array(s[5]),
+                   rot @ np.array(pybullet.getMatrixFromQuaternion(s[6])).reshape(3, 3))
                   for s in pybullet.getCollisionShapeData(body, -1, physicsClientId=client)]
         lo, hi = pybullet.getAABB(body, -1, physicsClientId=client)
         mass = pybullet.getDynamicsInfo(body, -1, physicsClientId=client)[0]
@@ -154,15 +155,15 @@ def pybullet_parts(path):
 
 def assert_pybullet_matches(path, models, scale=1.0, density=1000.0):
     """pybullet reads the URDF as one link with one collision shape per primitive, of
-    its kind (cones as meshes), sizes and centre, the primitives' mass and centre of mass,
-    and bounds that hold the primitives' (bullet's compound bounds are loose: within 5 %
-    of the diagonal)."""
+    its kind (cones as meshes), sizes, centre and world bounds (from its size and pose;
+    the cones' meshes aside), the primitives' mass and centre of mass; bullet's own
+    bounds of the link hold the primitives' (they are loose for a rotated compound)."""
     links, shapes, (lo, hi), mass, com = pybullet_parts(path)
     assert links == 0 and len(shapes) == len(models)
     kinds = {"box": pybullet.GEOM_BOX, "sphere": pybullet.GEOM_SPHERE,
              "cylinder": pybullet.GEOM_CYLINDER, "plane": pybullet.GEOM_CYLINDER,
              "cone": pybullet.GEOM_MESH}
-    for (kind, size, centre), m in zip(shapes, models, strict=True):
+    for (kind, size, centre, rot), m in zip(shapes, models, strict=True):
         assert kind == kinds[m.name], (m.name, kind)
         tol = 1e-6 * scale * float(np.max(np.abs(m.bounding_box())))
         if m.name == "box":
@@ -172,16 +173,29 @@ def assert_pybullet_matches(path, models, scale=1.0, density=1000.0):
         elif m.name == "cylinder":
             np.testing.assert_allclose(size[:2], scale * np.array([m.height, m.radius]),
                                        atol=tol)
-        if m.name != "cone":  # a mesh's centre is its file's origin
-            np.testing.assert_allclose(centre, scale * np.asarray(m.center), atol=1e-5 * scale
-                                       * float(np.ptp(np.asarray(m.bounding_box()))) + 1e-9)
+        if m.name == "cone":  # a mesh's centre is its file's origin
+            continue
+        want_lo, want_hi = (scale * np.asarray(b) for b in m.bounding_box())
+        tol = 1e-5 * float(np.linalg.norm(want_hi - want_lo)) + 1e-9
+        np.testing.assert_allclose(centre, scale * np.asarray(m.center), atol=tol)
+        if kind == pybullet.GEOM_BOX:
+            reach = np.abs(rot) @ (size / 2)
+        elif kind == pybullet.GEOM_SPHERE:
+            reach = np.full(3, size[0])
+        else:  # a cylinder (height, radius) along its local z: its two end disks
+            axis = rot[:, 2]
+            reach = (size[1] * np.sqrt(np.clip(1 - axis**2, 0, None))
+                     + size[0] / 2 * np.abs(axis))
+        if m.name == "plane":  # the thin disk's half thickness
+            tol += scale * sim.PLANE_THICKNESS * float(m.radius)
+        np.testing.assert_allclose(centre - reach, want_lo, atol=tol)
+        np.testing.assert_allclose(centre + reach, want_hi, atol=tol)
     want_mass, want_com, _ = mass_properties(models, density)
     assert mass == pytest.approx(want_mass * scale**3, rel=1e-6)
     np.testing.assert_allclose(com, scale * want_com, atol=1e-6 * scale)
     want_lo, want_hi = (scale * b for b in union_bounds([m.bounding_box() for m in models]))
     diagonal = float(np.linalg.norm(want_hi - want_lo))
     assert np.all(lo <= want_lo + 2e-3 * diagonal) and np.all(hi >= want_hi - 2e-3 * diagonal)
-    assert np.all(lo >= want_lo - 0.05 * diagonal) and np.all(hi <= want_hi + 0.05 * diagonal)
 
 
 @needs_pybullet
