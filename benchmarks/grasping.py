@@ -73,18 +73,27 @@ def load_mesh(path: Path):
     return trimesh.load(path, force="mesh")
 
 
-def convex_pieces(mesh, method: str):
+def convex_pieces(mesh, method: str, cache: Path | None = None):
     """The object's convex pieces as vertex arrays: CoACD's, or None (``lift_trial`` then
-    takes the mesh's connected bodies)."""
+    takes the mesh's connected bodies). With ``cache`` (a .npz path), CoACD's pieces are
+    read from it when it exists and written to it otherwise (CoACD is seeded: the same
+    mesh gives the same pieces; it is most of the benchmark's time)."""
     if method == "bodies":
         return None
+    if cache is not None and cache.is_file():
+        with np.load(cache) as stored:
+            return [stored[f"piece{i}"] for i in range(len(stored.files))]
     import coacd
 
     coacd.set_log_level("error")
     parts = coacd.run_coacd(coacd.Mesh(np.asarray(mesh.vertices, np.float64),
                                        np.asarray(mesh.faces, np.int64)), threshold=0.05,
                             seed=0)
-    return [np.asarray(vertices) for vertices, _ in parts]
+    pieces = [np.asarray(vertices) for vertices, _ in parts]
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, **{f"piece{i}": v for i, v in enumerate(pieces)})
+    return pieces
 
 
 def antipodal(mesh, jaw, count: int, *, seed: int = 0, num_points: int = NUM_POINTS,
@@ -155,6 +164,8 @@ def main():
     except ImportError:
         default = "bodies"
     parser.add_argument("--pieces", choices=["coacd", "bodies"], default=default)
+    parser.add_argument("--cache", type=Path, default=None, metavar="DIR",
+                        help="keep CoACD's pieces per model in DIR (read when there)")
     args = parser.parse_args()
     if not DATA.is_dir():
         raise SystemExit(f"no shared data at {DATA}")
@@ -187,7 +198,8 @@ def main():
             plans[floor] = jaxfit.grasps(d, jaw, key=0, top=TOP,
                                          support=floor_plane if floor else None)
             warm[floor] = time.perf_counter() - start
-        pieces = convex_pieces(mesh, args.pieces)
+        pieces = convex_pieces(mesh, args.pieces,
+                               None if args.cache is None else args.cache / f"{name}.npz")
         trials = {floor: [lift_trial(mesh, pose, width, jaw, scale=scale, up=up,
                                      pieces=pieces, floor=floor)
                           for pose, width in zip(g.poses, g.widths, strict=True)]
