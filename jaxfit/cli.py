@@ -98,10 +98,38 @@ def _folder_target(path: str, flag: str) -> None:
         raise ValueError(f"{flag} {path}: not writable")
 
 
-def _check_outputs(args) -> None:
-    """Every output path of the command, checked before it starts."""
+#: Options that only some uses of a command read: (command, flags, when they are read,
+#: what to say otherwise, their defaults). Given where they would not be read, they are
+#: refused rather than silently ignored.
+CONDITIONAL = (
+    ("decompose", ("name", "density", "scale"), lambda a: a.urdf or a.mjcf,
+     "--name, --density and --scale set the --urdf/--mjcf files: give --urdf or --mjcf",
+     {"name": "object", "density": 1000.0, "scale": 1.0}),
+    ("demo", ("gain",), lambda a: a.shape is None,
+     "--gain applies to the decomposition demo, not to the fit of --shape", {"gain": 0.96}),
+    ("demo", ("threshold", "estimator"), lambda a: a.shape is not None,
+     "--threshold and --estimator apply to the fit demo: give --shape S", {}),
+)
+
+
+def _check_flags(args) -> None:
+    """Refuse an option the command would not read (see ``CONDITIONAL``), then fill in
+    the defaults of those left out."""
+    for command, flags, read, message, defaults in CONDITIONAL:
+        if args.command != command:
+            continue
+        given = [f for f in flags if getattr(args, f) is not None]
+        if given and not read(args):
+            raise ValueError(message)
+        for flag, value in defaults.items():
+            if getattr(args, flag) is None:
+                setattr(args, flag, value)
     if args.command == "demo" and args.shape is None and args.out is None:
         args.out = DEMO_OUT  # the decomposition demo always writes its folder
+
+
+def _check_outputs(args) -> None:
+    """Every output path of the command, checked before it starts."""
     if getattr(args, "json", None):
         _file_target(args.json, "--json", (".json",))
     if getattr(args, "mesh", None):
@@ -445,11 +473,11 @@ def _add_decompose(sub):
                            help="also write the primitives as a URDF robot, DIR/NAME.urdf")
     decompose.add_argument("--mjcf", action="store_true",
                            help="also write them as a MuJoCo model, DIR/NAME.xml")
-    decompose.add_argument("--name", default="object",
+    decompose.add_argument("--name", default=None,
                            help="--urdf/--mjcf: the body's name and file stem (object)")
-    decompose.add_argument("--density", type=float, default=1000.0,
+    decompose.add_argument("--density", type=float, default=None,
                            help="--urdf/--mjcf: mass per unit volume in written units (1000)")
-    decompose.add_argument("--scale", type=float, default=1.0,
+    decompose.add_argument("--scale", type=float, default=None,
                            help="--urdf/--mjcf: multiplies every length (0.001 for a model "
                                 "in millimetres; default 1)")
     decompose.set_defaults(run=_cmd_decompose)
@@ -525,7 +553,7 @@ def _add_demo(sub):
     demo.add_argument("--out", default=None, metavar="DIR",
                       help=f"output folder (default ./{DEMO_OUT} for a decomposition; "
                            "with --shape, DIR/fit.json and DIR/SHAPE.ply)")
-    demo.add_argument("--gain", type=float, default=0.96,
+    demo.add_argument("--gain", type=float, default=None,
                       help="the decomposition's split threshold, as in decompose (0.96)")
     _fit_options(demo, required=False)
     _outputs(demo, "the fit or the parts")
@@ -593,6 +621,7 @@ def main(argv=None) -> int:
     JAXFIT_DEBUG=1) or a batch with failed models, 130 when interrupted."""
     try:
         args = _parser().parse_args(argv)
+        _check_flags(args)
         _check_outputs(args)
         # (batch: its workers compile, its progress says so; warmup: compiling is its job)
         notice = None if args.command in ("batch", "warmup") else _cache.compile_notice()

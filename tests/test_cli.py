@@ -180,6 +180,11 @@ def test_every_bad_output_path_fails_at_once_in_one_line(tmp_path, capsys, monke
         (["evaluate", "--out", str(a_file)], "--out .* is a file"),
         (["batch", c, "--out", str(a_file)], "--out .* is a file"),
         (["fit", c, "--shape", "plane", "--bogus"], "unrecognized arguments: --bogus"),
+        # Options the command would not read are refused, not ignored.
+        (["decompose", c, "--out", str(tmp_path), "--scale", "0.001"],
+         "--scale set the --urdf/--mjcf files"),
+        (["demo", "--shape", "sphere", "--gain", "0.9"], "--gain applies to the decomposition"),
+        (["demo", "--threshold", "0.01"], "--threshold and --estimator apply to the fit demo"),
     ]
     for argv, message in cases:
         assert main(argv) == 2, argv
