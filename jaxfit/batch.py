@@ -500,7 +500,7 @@ def write_summary(rows: list[dict], out, meta: dict) -> None:
 # ----- the entry point -----------------------------------------------------------------
 
 
-def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int = 1,
+def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int | None = None,
               scheduler=None, num_points: int = 20000, seed: int = 0,
               extensions=None, progress: bool = False) -> Summary:
     """Run ``task`` on every model of ``inputs`` and write ``out`` (see the module
@@ -513,8 +513,9 @@ def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int
     task : one of ``TASKS``.
     shapes : fit: the one primitive (a name, or a list of one); detect / decompose: the
         candidate names, default theirs.
-    workers : local worker processes (0: this process); with ``scheduler="local"``, the
-        LocalCluster's workers.
+    workers : local worker processes (default 1; 0: this process); with
+        ``scheduler="local"``, the LocalCluster's workers; not with another scheduler
+        (a running cluster has its own workers).
     scheduler : None (local processes), ``"local"`` (a Dask LocalCluster), a Dask
         scheduler address such as ``"tcp://10.0.0.1:8786"``, or a Dask cluster object
         (its ``scheduler_address``: a dask-jobqueue ``SLURMCluster``, say).
@@ -535,6 +536,11 @@ def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int
         raise ValueError(f"unknown shape {unknown[0]!r}; use some of {', '.join(REGISTRY)}")
     if task == "fit" and (shapes is None or len(shapes) != 1):
         raise ValueError("the fit task needs exactly one shape (--shape S)")
+    remote = scheduler is not None and not (isinstance(scheduler, str) and scheduler == "local")
+    if remote and workers is not None:
+        raise ValueError("workers sets the local processes or the LocalCluster's; a running "
+                         "Dask cluster has its own workers: leave workers out")
+    workers = 1 if workers is None else workers
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
         raise ValueError(f"workers must be a non-negative integer, got {workers!r}")
     if scheduler is not None:

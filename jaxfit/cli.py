@@ -526,10 +526,10 @@ def _add_batch(sub):
                        default=None,
                        help="fit: the one primitive to fit (required); detect, decompose: "
                             "the candidate shapes (default: theirs)")
-    batch.add_argument("--workers", type=int, default=1, metavar="N",
+    batch.add_argument("--workers", type=int, default=None, metavar="N",
                        help="local worker processes, each keeping its compiled kernels "
                             "(default 1; 0 runs in this process); with --scheduler local "
-                            "the LocalCluster's workers")
+                            "the LocalCluster's workers; not with a scheduler address")
     batch.add_argument("--scheduler", metavar="ADDRESS", default=None,
                        help="run on Dask distributed: 'local' (a LocalCluster of --workers "
                             "processes) or a scheduler address tcp://HOST:PORT; needs "

@@ -127,7 +127,8 @@ def test_bad_arguments_fail_before_any_model_runs(tmp_path, monkeypatch):
              ({"task": "fit"}, "exactly one shape"),
              ({"task": "fit", "shapes": ["plane", "sphere"]}, "exactly one shape"),
              ({"shapes": ["torus"]}, "unknown shape 'torus'"),
-             ({"workers": -1}, "non-negative integer")]
+             ({"workers": -1}, "non-negative integer"),
+             ({"workers": 2, "scheduler": "tcp://127.0.0.1:1"}, "has its own workers")]
     for options, message in cases:
         with pytest.raises(ValueError, match=message):
             run_batch([models], tmp_path / "out", **options)
@@ -188,9 +189,16 @@ def test_local_cluster_of_two_workers_and_local_processes_give_the_same_summary(
             == [[r[k] for k in same] for r in local.rows])
     for name in ("sphere0", "sphere1", "sphere2"):
         assert (tmp_path / "dask" / name / "fit.json").is_file()
-    # Resumed on the cluster: nothing but the failed model runs again.
-    again = run_batch([models], tmp_path / "dask", scheduler="local", **options)
-    assert again.num_reused == 3
+    # Resumed on a running cluster given as an object (as a dask-jobqueue SLURMCluster
+    # would be): nothing but the failed model runs again.
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        again = run_batch([models], tmp_path / "dask", task="fit", shapes="sphere",
+                          scheduler=cluster)
+    assert again.num_reused == 3 and [r["model"] for r in again.rows if not r["reused"]] == [
+        "bad"]
 
 
 @pytest.mark.slow
