@@ -335,7 +335,12 @@ def _cmd_grasp(args):
         finger_width=0.235 * width if args.finger_width is None else args.finger_width)
     result = decompose(args.input, num_points=args.num_points, key=args.seed, progress=True)
     print(result.summary())
-    found = grasps(result, gripper, key=args.seed, top=args.top)
+    support = None
+    if args.floor:
+        up = np.zeros(3)
+        up["xyz".index(args.floor[-1])] = -1.0 if args.floor[0] == "-" else 1.0
+        support = (up, float(np.min(np.asarray(result.points) @ up)))
+    found = grasps(result, gripper, key=args.seed, top=args.top, support=support)
     print(f"{len(found)} grasps kept of {found.num_candidates} candidates in "
           f"{found.seconds:.2f} s")
     for i in range(len(found)):
@@ -500,6 +505,10 @@ def _add_grasp(sub):
                        help="metres per model unit for the default gripper (0.001 for "
                             "millimetres; default 1)")
     grasp.add_argument("--top", type=int, default=10, help="grasps kept, best first (10)")
+    grasp.add_argument("--floor", choices=["x", "y", "z", "-x", "-y", "-z"], default=None,
+                       help="the object stands on a table under its lowest point along this "
+                            "up axis: grasps that would reach the table are dropped "
+                            "(default: floating, every direction allowed)")
     _num_points(grasp)
     _seed(grasp)
     grasp.set_defaults(run=_cmd_grasp)

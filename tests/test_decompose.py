@@ -188,7 +188,7 @@ def test_a_failed_save_leaves_the_old_files(tmp_path, monkeypatch):
     result = decompose(composite("mallet", count=3000, seed=0)[0], gain=0.9, reassign=0)
     result.save(tmp_path)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
-    assert set(before) == {"parts.json", "decomposition.glb", "preview.png"}
+    assert set(before) == {"parts.json", "points.npy", "decomposition.glb", "preview.png"}
 
     def interrupted(decomposition, path, **kwargs):
         path.write_bytes(b"half a png")

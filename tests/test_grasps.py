@@ -408,3 +408,23 @@ def test_cli_grasp(tmp_path, capsys, monkeypatch, objects):
     assert main(["grasp", str(cloud), "--out", str(tmp_path / "bad"),
                  "--gripper-width", "-1"]) == 2
     assert "max_width" in capsys.readouterr().err
+
+
+def test_cli_grasp_floor(tmp_path, capsys, monkeypatch, objects):
+    """--floor z tells the planner of a table under the lowest point: no grasp approaches
+    from below (the 6 x 16 x 21 cm box, decomposition stubbed as above)."""
+    import jaxfit.decomposition
+    from jaxfit.cli import main
+
+    monkeypatch.setattr(jaxfit.decomposition, "decompose", lambda source, **_: objects["box"])
+    cloud = tmp_path / "box.npy"
+    np.save(cloud, objects["box"].points)
+    for floor, out in ((None, tmp_path / "free"), ("z", tmp_path / "floor")):
+        assert main(["grasp", str(cloud), "--out", str(out), "--top", "50"]
+                    + ([] if floor is None else ["--floor", floor])) == 0
+    def approaches(name):
+        record = json.loads((tmp_path / name / "grasps.json").read_text())
+        return np.array([np.asarray(g["pose"])[:3, 2] for g in record["grasps"]])
+
+    assert (approaches("free")[:, 2] > 0.5).any()
+    assert not (approaches("floor")[:, 2] > 0.5).any()

@@ -70,10 +70,14 @@ def test_layers_import_one_way():
         "jaxfit.io": ("jaxfit.engine", "jaxfit.decomposition", "jaxfit.evaluation",
                       "jaxfit.detect", "jaxfit.cli"),
     }
+    # The one io module the engine reads: fit_batch converts its callers' sources (meshes,
+    # paths, Open3D clouds) with it before any work.
+    allowed = {"jaxfit.engine": {"jaxfit.io.inputs"}}
     for module, found in GRAPH.items():
         for layer, forbidden in below.items():
             if module == layer or module.startswith(layer + "."):
-                bad = sorted(m for m in found if m.startswith(forbidden))
+                bad = sorted(m for m in found if m.startswith(forbidden)
+                             and m not in allowed.get(layer, ()))
                 assert not bad, f"{module} imports {bad}"
 
 
