@@ -230,11 +230,8 @@ def _cmd_detect(args):
     points, normals = as_cloud(args.cloud, num_points=args.num_points, seed=args.seed)
     _progress(start)(f"{args.cloud}: {len(points)} points"
                      + (", normals from the file" if normals is not None else ""))
-    # detect prints one line per primitive on stdout: progress, so it goes to stderr.
-    with contextlib.redirect_stdout(sys.stderr):
-        scene = detect(points, args.shapes, min_inliers=args.min_inliers,
-                       threshold=args.threshold, normals=normals, key=args.seed,
-                       progress=True)
+    scene = detect(points, args.shapes, min_inliers=args.min_inliers,
+                   threshold=args.threshold, normals=normals, key=args.seed, progress=True)
     _report_scene(scene, len(points), time.perf_counter() - start, args)
 
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import sys
 import time
 import types
 from pathlib import Path
@@ -404,7 +405,8 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
         connectivity radius of its points, to the nearest one at the end (``_settled``).
     key : int seed or JAX key; round r, group g, shape s of S fits with
         ``fold_in(fold_in(fold_in(key, r), g), s)`` and refits with ``... , S + s)``.
-    progress : print one line per detected primitive.
+    progress : print one line per detected primitive on stderr, with the seconds since
+        the call began.
     **fit_options : passed to every ``jaxfit.fit`` call: ``FitOptions`` fields (e.g.
         ``batch_size``, ``min_hypotheses``, ``estimator``) or ``options``, checked for
         every shape before any work; not ``normals``, ``threshold`` or ``key``, which
@@ -429,11 +431,10 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
                        fit_points, tolerance, fit_options)
     found: list[Detection] = []
     live = np.ones(len(cloud), bool)  # unassigned points in groups that may still give
-    rnd = 0
+    rnd, started = 0, time.perf_counter()
     while groups := _groups(cloud, np.flatnonzero(live), radius, min_inliers):
         live[:] = False
         for g, group in enumerate(groups):
-            start = time.perf_counter()
             best = _best(context, classes, group, jax.random.fold_in(
                 jax.random.fold_in(key, rnd), g))
             if best is None or len(best[1]) < min_inliers:
@@ -441,9 +442,9 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
             model, taken, cost = best
             found.append(Detection(model, np.sort(taken), cost, rnd))
             live[np.setdiff1d(group, taken)] = True
-            if progress:
+            if progress:  # (on stderr, seconds since the call began: as decompose's lines)
                 print(f"round {rnd}: {model.name} with {len(taken)} of {len(group)} points "
-                      f"({time.perf_counter() - start:.2f} s)")
+                      f"({time.perf_counter() - started:.2f} s)", file=sys.stderr, flush=True)
         rnd += 1
     if settle and found:
         # Settling can leave a detection with fewer than min_inliers points (a sliver
