@@ -106,7 +106,7 @@ def decompose_model(name: str):
     cpu = time.process_time() - cpu
     out = RESULTS / name
     out.mkdir(exist_ok=True)
-    (out / "parts.json").write_text(json.dumps(result.to_dict(), indent=1))
+    (out / "parts.json").write_text(json.dumps(compact(result.to_dict()), indent=1))
     render(result, out / "preview.png")
     worst = max(p.mean_distance / np.linalg.norm(p.box.extents) for p in result.parts)
     row = {"model": name, "points": len(points), "parts": len(result.parts),
@@ -115,6 +115,16 @@ def decompose_model(name: str):
     (out / "summary.json").write_text(json.dumps(row, indent=1))
     print(_summary_line(row), flush=True)
     return result, cpu
+
+
+def compact(parts: dict) -> dict:
+    """``Decomposition.to_dict`` less its per-point arrays (each part's ``indices``, the
+    hierarchy's ``leaf_labels``: 20,000 integers each, 350 KB a model), which the
+    committed tables do not need (``Decomposition.save`` keeps them)."""
+    parts = dict(parts, parts=[{k: v for k, v in p.items() if k != "indices"}
+                               for p in parts["parts"]])
+    parts["hierarchy"] = {k: v for k, v in parts["hierarchy"].items() if k != "leaf_labels"}
+    return parts
 
 
 def _summary_line(row) -> str:
