@@ -9,6 +9,7 @@ the defaults of ``LevenbergMarquardt`` (how they were chosen: docs/engine.md).
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from functools import partial
 
 import jax
@@ -193,42 +194,13 @@ FINAL_CHUNK = 1 << 16
 FINAL_STEP = 1e-7
 
 
-def _unit(v):
-    """Rows of v (..., 3) scaled to unit length (zero rows map to +z, as ``safe_normalize``)."""
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return np.where(n > 0, v / np.where(n > 0, n, 1.0), np.array([0.0, 0.0, 1.0]))
-
-
-def _polar(theta):
-    """A box's theta with its normals (rows of theta[:9]) replaced by the nearest
-    orthogonal matrix (the polar factor, as ``Box.canonicalize``)."""
-    u, _, vt = np.linalg.svd(theta[:9].reshape(3, 3))
-    return np.concatenate([(u @ vt).reshape(-1), theta[9:]])
-
-
-def _cone(theta):
-    from ..shapes.cone import MIN_ANGLE
-
-    return np.concatenate([theta[:3], _unit(theta[3:6]), np.clip(theta[6:], MIN_ANGLE,
-                                                                 np.pi / 2 - MIN_ANGLE)])
-
-
-#: NumPy float64 twins of the shapes' ``canonicalize`` (which are JAX-only): the final
-#: refit's projection back onto valid parameters after a step. A shape missing here (and
-#: without a ``canonicalize_host`` of its own) is not refitted.
-HOST_CANONICAL = {
-    "plane": lambda t: np.concatenate([_unit(t[:3]), t[3:] / max(np.linalg.norm(t[:3]), 1e-300)]),
-    "sphere": lambda t: np.concatenate([t[:3], np.abs(t[3:])]),
-    "cylinder": lambda t: np.concatenate([t[:3], _unit(t[3:6]), np.abs(t[6:])]),
-    "cone": _cone,
-    "box": _polar,
-}
-
-
 def host_canonical(cls: type[Model]):
-    """theta (P,) -> theta (P,): the NumPy projection of ``cls`` onto valid parameters,
-    or None when it has none (then the final refit leaves its fits alone)."""
-    return getattr(cls, "canonicalize_host", None) or HOST_CANONICAL.get(cls.name)
+    """theta (P,) -> theta (P,): ``cls.canonicalize`` in NumPy float64, or None for a
+    shape whose ``canonicalize`` takes no ``xp`` (then the final refit leaves its fits
+    alone)."""
+    if "xp" not in inspect.signature(cls.canonicalize).parameters:
+        return None
+    return lambda theta: cls.canonicalize(np.asarray(theta, np.float64), np)
 
 
 def host_admits(cls: type[Model], bounds: np.ndarray, theta) -> bool:

@@ -19,9 +19,10 @@ needs as class-level functions:
   with ``oriented_sample_size`` k'. It must not depend on the normals' signs: estimated
   normals are oriented only where that can be done. ``estimators`` holds both as
   ``Estimator`` records, and ``default_estimator`` names the one ``fit`` uses.
-- ``canonicalize(theta)``: projects a flat parameter vector back onto the valid set
-  (unit axes, positive radius) after a refinement step. Differentiable: refinement
-  differentiates the residual through it.
+- ``canonicalize(theta, xp=jnp)``: projects a flat parameter vector back onto the valid
+  set (unit axes, positive radius) after a refinement step. Differentiable: refinement
+  differentiates the residual through it; with ``xp=numpy`` it serves the final float64
+  refit (a shape whose ``canonicalize`` takes no ``xp`` is not refitted there).
 - ``least_squares(points, weights) -> theta`` (optional, else None): the weighted
   geometric least-squares fit (points (S, 3), weights (S,)) in closed form; refinement
   uses it instead of Levenberg-Marquardt steps.
@@ -195,7 +196,7 @@ class Model:
         return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
 
     @staticmethod
-    def canonicalize(theta):
+    def canonicalize(theta, xp=jnp):
         return theta
 
     least_squares = None  # see the module docstring

@@ -27,18 +27,19 @@ GAP_THRESHOLDS = 5.0
 MIN_PER_BIN = 16
 
 
-def safe_norm(v, axis=-1):
+def safe_norm(v, axis=-1, xp=jnp):
     """Euclidean norm whose gradient stays finite at 0. v : (..., 3) -> (...)."""
-    sq = jnp.sum(v * v, axis=axis)
-    return jnp.sqrt(jnp.where(sq > 0, sq, 1.0)) * (sq > 0)
+    sq = xp.sum(v * v, axis=axis)
+    return xp.sqrt(xp.where(sq > 0, sq, 1.0)) * (sq > 0)
 
 
-def safe_normalize(v):
-    """Unit vector along v (..., 3) and its length; a zero vector maps to +z."""
-    n = safe_norm(v)
+def safe_normalize(v, xp=jnp):
+    """Unit vector along v (..., 3) and its length; a zero vector maps to +z (``xp``:
+    jax.numpy or numpy)."""
+    n = safe_norm(v, xp=xp)
     ok = n > 0
-    fallback = jnp.array([0.0, 0.0, 1.0], v.dtype)
-    unit = jnp.where(ok[..., None], v / jnp.where(ok, n, 1.0)[..., None], fallback)
+    fallback = xp.asarray([0.0, 0.0, 1.0], v.dtype)
+    unit = xp.where(ok[..., None], v / xp.where(ok, n, 1.0)[..., None], fallback)
     return unit, n
 
 

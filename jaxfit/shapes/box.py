@@ -121,14 +121,14 @@ class Box(Model):
         return xp.where(xp.abs(near01) <= xp.abs(r[2]), near01, r[2])
 
     @staticmethod
-    def canonicalize(theta):
+    def canonicalize(theta, xp=jnp):
         # Nearest rotation to the refined normals (the polar factor), by Newton's
         # iteration X <- (X + X^-T) / 2: refinement differentiates through this, and the
         # SVD's derivative is undefined at a rotation (three equal singular values).
         rot = theta[:9].reshape(3, 3)
         for _ in range(POLAR_STEPS):
-            rot = 0.5 * (rot + jnp.linalg.inv(rot).T)
-        return jnp.concatenate([rot.reshape(-1), theta[9:]])
+            rot = 0.5 * (rot + xp.linalg.inv(rot).T)
+        return xp.concatenate([rot.reshape(-1), theta[9:]])
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):

@@ -104,11 +104,11 @@ class Cone(Model):
         return xp.cos(theta[6]) * rho - xp.sin(theta[6]) * t
 
     @staticmethod
-    def canonicalize(theta):
+    def canonicalize(theta, xp=jnp):
         # A refinement step must not leave (0, pi/2): past either end it is no cone.
-        axis, _ = g.safe_normalize(theta[3:6])
-        angle = jnp.clip(theta[6:], MIN_ANGLE, jnp.pi / 2 - MIN_ANGLE)
-        return jnp.concatenate([theta[:3], axis, angle])
+        axis, _ = g.safe_normalize(theta[3:6], xp)
+        angle = xp.clip(theta[6:], MIN_ANGLE, np.pi / 2 - MIN_ANGLE)
+        return xp.concatenate([theta[:3], axis, angle])
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):

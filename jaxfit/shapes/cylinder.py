@@ -76,9 +76,9 @@ class Cylinder(Model):
         return xp.sqrt(xp.maximum(rho2, 1e-30)) - theta[6]
 
     @staticmethod
-    def canonicalize(theta):
-        axis, _ = g.safe_normalize(theta[3:6])
-        return jnp.concatenate([theta[:3], axis, jnp.abs(theta[6:])])
+    def canonicalize(theta, xp=jnp):
+        axis, _ = g.safe_normalize(theta[3:6], xp)
+        return xp.concatenate([theta[:3], axis, xp.abs(theta[6:])])
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):

@@ -53,9 +53,9 @@ class Plane(Model):
         return theta[0] * p[0] + theta[1] * p[1] + theta[2] * p[2] + theta[3]
 
     @staticmethod
-    def canonicalize(theta):
-        normal, length = g.safe_normalize(theta[:3])
-        return jnp.concatenate([normal, theta[3:] / jnp.where(length > 0, length, 1.0)])
+    def canonicalize(theta, xp=jnp):
+        normal, length = g.safe_normalize(theta[:3], xp)
+        return xp.concatenate([normal, theta[3:] / xp.where(length > 0, length, 1.0)])
 
     @staticmethod
     def least_squares(points, weights):

@@ -67,8 +67,8 @@ class Sphere(Model):
         return xp.sqrt(dx * dx + dy * dy + dz * dz) - theta[3]
 
     @staticmethod
-    def canonicalize(theta):
-        return theta.at[3].set(jnp.abs(theta[3]))
+    def canonicalize(theta, xp=jnp):
+        return xp.concatenate([theta[:3], xp.abs(theta[3:])])
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
