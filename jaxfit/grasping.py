@@ -59,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _checks
+from ._cache import stored_jit
 from .shapes import mass_properties
 from .shapes._geometry import frame
 
@@ -405,14 +406,17 @@ def candidates(decomposition, *, key=0, normals=None, seeds: int = SEEDS_PER_PAR
 FILTER_CHUNK = 32
 
 
-@jax.jit
-def _filter(points, valid, normals, centres, rotations, com, dims):
+def _filter_all(points, valid, normals, centres, rotations, com, dims):
     """``_filter_block`` over the candidates (C,) in chunks of ``FILTER_CHUNK`` (C a
     multiple of it), its outputs joined."""
     out = jax.lax.map(
         lambda block: _filter_block(points, valid, normals, *block, com, dims),
         (centres.reshape(-1, FILTER_CHUNK, 3), rotations.reshape(-1, FILTER_CHUNK, 3, 3)))
     return tuple(o.reshape((-1, *o.shape[2:])) for o in out)
+
+
+# Kept between processes with the fitting kernels (jaxfit's cache is scoped to them).
+_filter = stored_jit(_filter_all)
 
 
 def _filter_block(points, valid, normals, centres, rotations, com, dims):
