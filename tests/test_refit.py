@@ -166,3 +166,11 @@ def test_fit_returns_the_least_squares_fit_of_all_its_inliers(shape, monkeypatch
     lo = jaxfit.fit(points, shape, threshold=3 * SIGMA, key=0).model.theta()
     moved, _, _ = refine.final_refit(cls, lo, points, 3 * SIGMA)
     assert noise_distance(info, moved, lo) > 0.01
+    monkeypatch.undo()  # the option turns it off alike
+    off = jaxfit.fit(points, shape, threshold=3 * SIGMA, key=0, final_refit=False)
+    assert np.array_equal(off.model.theta(), lo)
+
+
+def test_final_refit_option_is_checked():
+    with pytest.raises(ValueError, match="final_refit must be True or False"):
+        jaxfit.fit(np.random.default_rng(0).normal(size=(100, 3)), "sphere", final_refit=1)

@@ -108,7 +108,7 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     estimate_normals(prepared)
 
     thetas, drawn, status = search(cls, checked, prepared, key, seed, which)
-    if checked.refine and getattr(checked, "final_refit", True):
+    if checked.refine and checked.final_refit:
         thetas = refitted(cls, prepared, thetas, checked)
     for j, (i, cloud) in enumerate(zip(which, prepared, strict=True)):
         try:

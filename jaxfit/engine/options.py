@@ -154,6 +154,9 @@ class FitOptions:
     min_hypotheses : floor on the confidence-based count T; default the estimator's own.
         ``min_hypotheses=max_hypotheses`` (with a large ``max_stall``) runs a fixed number.
     refine : local optimisation (LO-RANSAC) of each new best hypothesis by ``refiner``.
+    final_refit : a float64 least-squares refit on all inliers of each cloud of more than
+        ``refine.FINAL_MIN_POINTS`` points after the search (``refine.final_refit``);
+        off with ``refine=False`` too.
     estimator : "thesis" or "oriented" (see ``Model.estimators``); default the shape's
         ``default_estimator``.
     radius_range, axis_prior, normal_angle : the user's bounds (see ``Bounds.of``).
@@ -171,6 +174,7 @@ class FitOptions:
     max_stall: int = 20_000
     min_hypotheses: int | None = None
     refine: bool = True
+    final_refit: bool = True
     estimator: str | None = None
     radius_range: tuple | None = None
     axis_prior: tuple | None = None
@@ -217,8 +221,9 @@ class FitOptions:
                                                       and min_hypotheses >= 0):
             raise ValueError(
                 f"min_hypotheses must be a non-negative integer, got {min_hypotheses!r}")
-        if not isinstance(self.refine, bool | np.bool_):
-            raise ValueError(f"refine must be True or False, got {self.refine!r}")
+        for name in ("refine", "final_refit"):
+            if not isinstance(getattr(self, name), bool | np.bool_):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for stage, kind in ((self.sampler, Sampler), (self.scorer, Scorer),
                             (self.stopping, StoppingRule), (self.refiner, LocalOptimizer)):
             if not isinstance(stage, kind):
@@ -235,7 +240,8 @@ class FitOptions:
             max_hypotheses=_checks.positive(self.max_hypotheses, "max_hypotheses", integer=True),
             batch_size=_batch_size(self.batch_size),
             max_stall=_checks.positive(self.max_stall, "max_stall", integer=True),
-            min_hypotheses=int(min_hypotheses), refine=bool(self.refine), estimator=est.name,
+            min_hypotheses=int(min_hypotheses), refine=bool(self.refine),
+            final_refit=bool(self.final_refit), estimator=est.name,
             bounds=bounds,
         )
 
