@@ -8,18 +8,23 @@ import sys
 from . import _cache
 from ._cache import compilation_cache_dir
 from ._checks import FitError
+from .batch import run_batch
 from .decomposition import Decomposition, Part, decompose
 from .detect import Detection, Scene, detect
 from .engine import Bounds, FitOptions, FitResult, Status, fit, fit_batch
 from .grasping import Grasps, ParallelJaw, grasps
+from .io import SourceTypeError, as_cloud, load_cloud, load_points
 from .normals import estimate_normals
-from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere
+from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere, allclose
+from .warmup import warmup
 
 __all__ = [
     "fit", "fit_batch", "FitOptions", "Bounds", "FitResult", "Status", "FitError", "decompose",
     "Decomposition", "Part",
     "Model", "Plane", "Sphere", "Cylinder", "Cone", "Box", "compilation_cache_dir",
     "estimate_normals", "detect", "Detection", "Scene", "grasps", "Grasps", "ParallelJaw",
+    "as_cloud", "load_points", "load_cloud", "SourceTypeError", "allclose", "run_batch",
+    "warmup",
 ]
 
 #: Modules of the flat layout of jaxfit 0.1 -> where they live now. ``import
@@ -32,7 +37,6 @@ MOVED = {
     "iv": "io.iv",
     "preview": "io.preview",
     "scenarios": "evaluation.scenarios",
-    "measures": "evaluation.measures",
     "synthetic": "evaluation.synthetic",
     "reference": "evaluation.reference",
     "evaluate": "evaluation.evaluate",
