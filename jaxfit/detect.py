@@ -50,7 +50,7 @@ from . import _checks
 from .engine import FitOptions, default_threshold, fit
 from .io.inputs import converted
 from .normals import estimate_normals
-from .shapes import Model
+from .shapes import Model, trimesh_scene
 from .shapes._base import short
 
 #: Candidate shapes, simplest first (the order breaks near-ties in support).
@@ -165,14 +165,8 @@ class Scene:
 
     def to_trimesh(self):
         """A ``trimesh.Scene`` of the detected primitives, coloured by type."""
-        import trimesh
-
-        out = trimesh.Scene()
-        for i, d in enumerate(self.shapes):
-            mesh = d.model.to_mesh()
-            mesh.visual.face_colors = d.model.colour
-            out.add_geometry(mesh, node_name=f"shape{i}_{d.shape}")
-        return out
+        return trimesh_scene([d.model for d in self.shapes],
+                             [f"shape{i}_{d.shape}" for i, d in enumerate(self.shapes)])
 
     def save(self, directory) -> Path:
         """Write into ``directory``: scene.json (``to_dict``), and where they exist

@@ -41,7 +41,7 @@ import numpy as np
 
 from .. import _checks
 from ..engine import fit_batch
-from ..shapes import Box, Model, mass_properties
+from ..shapes import Box, Model, mass_properties, trimesh_scene
 from ..shapes._base import short
 from .boxdecomp import BoxNode, BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import shallow
@@ -178,14 +178,8 @@ class Decomposition:
 
     def to_scene(self):
         """A ``trimesh.Scene`` of the winning primitives, coloured by type."""
-        import trimesh
-
-        scene = trimesh.Scene()
-        for i, part in enumerate(self.parts):
-            mesh = part.model.to_mesh()
-            mesh.visual.face_colors = part.model.colour
-            scene.add_geometry(mesh, node_name=f"part{i}_{part.kind}")
-        return scene
+        return trimesh_scene([p.model for p in self.parts],
+                             [f"part{i}_{p.kind}" for i, p in enumerate(self.parts)])
 
     def labels(self) -> np.ndarray:
         """(N,) index into ``parts`` of each point's part (-1 for a point in none)."""

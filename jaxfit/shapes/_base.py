@@ -481,6 +481,19 @@ def check_density(density) -> float:
     return float(density)
 
 
+def trimesh_scene(models, names):
+    """A ``trimesh.Scene`` of the bounded models (``to_mesh``), each coloured by its type
+    (``colour``) and added as the node of its name in ``names``."""
+    import trimesh
+
+    scene = trimesh.Scene()
+    for model, name in zip(models, names, strict=True):
+        mesh = model.to_mesh()
+        mesh.visual.face_colors = model.colour
+        scene.add_geometry(mesh, node_name=name)
+    return scene
+
+
 def mass_properties(models, density: float = 1.0):
     """Mass (), centre of mass (3,) and inertia tensor (3, 3) about it, in the cloud's
     axes, of several primitives as one rigid body of uniform ``density``: their masses
