@@ -97,7 +97,7 @@ def test_refit_keeps_the_radius_and_axis_bounds():
     radius, axis = truth[6], truth[3:6]
     start = truth.copy()
     start[6] = radius * 0.99  # the least-squares radius (~truth) lies above the bound
-    bounds = Bounds.make(0.0, radius * 0.995).values
+    bounds = Bounds.make(0.0, radius * 0.995)
     theta, _, _ = refine.final_refit(cls, start, points, 3 * SIGMA, bounds)
     assert theta[6] <= radius * 0.995
     free, _, _ = refine.final_refit(cls, start, points, 3 * SIGMA)
@@ -108,7 +108,7 @@ def test_refit_keeps_the_radius_and_axis_bounds():
     tilt /= np.linalg.norm(tilt)
     rotate = lambda deg: np.cos(np.radians(deg)) * axis + np.sin(np.radians(deg)) * tilt  # noqa: E731
     start = np.concatenate([truth[:3], rotate(0.5), truth[6:]])
-    bounds = Bounds.make(axis=rotate(1.0), axis_cos=np.cos(np.radians(0.6))).values
+    bounds = Bounds.make(axis=rotate(1.0), axis_cos=np.cos(np.radians(0.6)))
     theta, _, _ = refine.final_refit(cls, start, points, 3 * SIGMA, bounds)
     assert abs(theta[3:6] @ rotate(1.0)) >= np.cos(np.radians(0.6))
     free, _, _ = refine.final_refit(cls, start, points, 3 * SIGMA)
@@ -128,7 +128,7 @@ def test_refit_honours_the_normal_gate():
     points, normals = np.vstack([points, stray]), np.vstack([normals, np.tile([1.0, 0, 0],
                                                                                (4000, 1))])
     start = np.array([0.0, 0.0, 1.0, -0.5 * SIGMA])
-    gated = Bounds.make(normal_cos=np.cos(np.radians(30.0))).values
+    gated = Bounds.make(normal_cos=np.cos(np.radians(30.0)))
     theta, _, _ = refine.final_refit(cls, start, points, 3 * SIGMA, gated, normals)
     free, _, _ = refine.final_refit(cls, start, points, 3 * SIGMA)
     # offset noise: SIGMA / sqrt(n); the strays pull the ungated fit by ~0.4 SIGMA

@@ -12,7 +12,7 @@ from ..io.inputs import converted_batch
 from ..shapes import Model
 from .cloud import Cloud, estimate_normals, prepare
 from .loop import search
-from .options import FitOptions
+from .options import Bounds, FitOptions
 from .refine import FINAL_MIN_POINTS, final_refit
 from .result import FitResult
 from .scoring import MSAC
@@ -156,7 +156,7 @@ def refitted(cls: type[Model], clouds: list[Cloud], thetas, options: FitOptions)
     for j, cloud in enumerate(clouds):
         if len(cloud.points) > FINAL_MIN_POINTS and np.all(np.isfinite(out[j])):
             out[j] = final_refit(cls, out[j], cloud.unit, cloud.threshold / cloud.scale,
-                                 np.asarray(cloud.unit_bounds().values, np.float64),
+                                 Bounds(np.asarray(cloud.unit_bounds().values, np.float64)),
                                  cloud.normals if cloud.gated else None)[0]
     return out
 

@@ -116,16 +116,17 @@ class Bounds:
         """One Bounds with a leading axis over ``rows``, as ``dtype``."""
         return Bounds(np.stack([row.values for row in rows]).astype(dtype))
 
-    def admits(self, model: type[Model], theta):
-        """Whether hypothesis theta (P,) honours the radius and axis bounds (JAX; never
-        raises, so it can mask a whole batch)."""
-        ok = jnp.asarray(True)
+    def admits(self, model: type[Model], theta, xp=jnp):
+        """Whether hypothesis theta (P,) honours the radius and axis bounds (``xp``:
+        jax.numpy in the kernels, numpy in the final refit; never raises, so it can mask
+        a whole batch)."""
+        ok = xp.asarray(True)
         if model.radius_index is not None:
             radius = theta[model.radius_index]
             ok &= (radius >= self.radius_low) & (radius <= self.radius_high)
         if model.axis_index is not None:
             axis = theta[model.axis_index:model.axis_index + 3]
-            ok &= jnp.abs(jnp.dot(axis, self.axis)) >= self.axis_cos
+            ok &= xp.abs(xp.dot(axis, self.axis)) >= self.axis_cos
         return ok
 
 

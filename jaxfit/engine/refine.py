@@ -203,17 +203,6 @@ def host_canonical(cls: type[Model]):
     return lambda theta: cls.canonicalize(np.asarray(theta, np.float64), np)
 
 
-def host_admits(cls: type[Model], bounds: np.ndarray, theta) -> bool:
-    """``Bounds.admits`` in NumPy: whether theta (P,) honours one cloud's bound values
-    (7,) (``Bounds.values``: radius low, high, axis (3,), axis cos, normal cos)."""
-    if cls.radius_index is not None and not bounds[0] <= theta[cls.radius_index] <= bounds[1]:
-        return False
-    if cls.axis_index is not None:
-        axis = theta[cls.axis_index:cls.axis_index + 3]
-        return bool(abs(axis @ bounds[2:5]) >= bounds[5])
-    return True
-
-
 def _chunks(n: int):
     return [slice(s, min(s + FINAL_CHUNK, n)) for s in range(0, n, FINAL_CHUNK)]
 
@@ -262,7 +251,7 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
 
     LO refines on at most LO_POINTS points (in the kernels' float32), so its accuracy
     stops growing with N; this sums over every point, ``FINAL_CHUNK`` at a time.
-    ``bounds``: one cloud's ``Bounds.values`` (7,) in the points' frame, or None;
+    ``bounds``: one cloud's ``Bounds`` (unbatched) in the points' frame, or None;
     with ``normals`` (N, 3), inliers are gated on them at the bounds' normal cosine.
     ``points`` are the cloud in the normalised frame, where theta's parameters are O(1).
     theta is first projected in float64 (``host_canonical``: the kernels' float32 axis
@@ -274,7 +263,7 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
     canonical = host_canonical(cls)
     if not np.all(np.isfinite(theta)) or canonical is None:
         return theta, np.inf, np.inf
-    args = (points, threshold, normals, None if normals is None else float(bounds[6]))
+    args = (points, threshold, normals, None if normals is None else float(bounds.normal_cos))
     theta = canonical(theta)
     cost, jtj, jtr = _evaluate(cls, theta, *args, canonical=canonical)
     start, damping = cost, 0.0
@@ -287,7 +276,7 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
             step = -np.linalg.pinv(jtj + damping * diag, rcond=1e-12, hermitian=True) @ jtr
             candidate = canonical(theta + step)
             if np.all(np.isfinite(candidate)) and (bounds is None
-                                                   or host_admits(cls, bounds, candidate)):
+                                                   or bounds.admits(cls, candidate, np)):
                 found = _evaluate(cls, candidate, *args, canonical=None if last else canonical)
                 if found[0] <= cost:
                     break
