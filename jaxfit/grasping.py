@@ -60,13 +60,13 @@ import numpy as np
 
 from . import _checks
 from ._cache import stored_jit
+from .engine.cloud import bucket_size
 from .shapes import mass_properties
 from .shapes._geometry import frame
 
-#: Candidates are padded to a multiple of this and points to a power of two (at least
-#: ``MIN_POINTS_BUCKET``), so the filter compiles once per bucket, not per object.
+#: Candidates are padded to a multiple of this and points to the fits' point buckets
+#: (``engine.bucket_size``), so the filter compiles once per bucket, not per object.
 CANDIDATE_BUCKET = 64
-MIN_POINTS_BUCKET = 1024
 #: Surface-seeded candidates per part (``_seeded_candidates``): points drawn per part,
 #: each approached from four directions.
 SEEDS_PER_PART = 16
@@ -272,11 +272,16 @@ def _box_candidates(model, rng):
     return np.array(centres), np.array(approaches), np.array(closings)
 
 
+def _angles(rng, count: int, span: float) -> np.ndarray:
+    """(count,) angles evenly spaced over ``span`` from one random offset in [0, span)."""
+    return rng.uniform(0, span) + np.arange(count) * (span / count)
+
+
 def _cylinder_candidates(model, rng):
     h = float(model.height)
     heights = np.linspace(-h / 2, h / 2, 7)[1:-1]
-    azimuths = rng.uniform(0, 2 * np.pi) + np.arange(8) * (2 * np.pi / 8)
-    rotations = rng.uniform(0, np.pi) + np.arange(4) * (np.pi / 4)
+    azimuths = _angles(rng, 8, 2 * np.pi)
+    rotations = _angles(rng, 4, np.pi)
     return _join(_radial(heights, azimuths), _along_z(0.0, -1.0, rotations),
                  _along_z(0.0, 1.0, rotations))
 
@@ -284,8 +289,8 @@ def _cylinder_candidates(model, rng):
 def _cone_candidates(model, rng):
     h = float(model.height)
     heights = np.linspace(0.0, h, 6)[1:-1]
-    azimuths = rng.uniform(0, 2 * np.pi) + np.arange(8) * (2 * np.pi / 8)
-    rotations = rng.uniform(0, np.pi) + np.arange(4) * (np.pi / 4)
+    azimuths = _angles(rng, 8, 2 * np.pi)
+    rotations = _angles(rng, 4, np.pi)
     return _join(_radial(heights, azimuths), _along_z(h / 4, 1.0, rotations),
                  _along_z(h / 4, -1.0, rotations))
 
@@ -298,7 +303,7 @@ def _sphere_candidates(model, rng, count: int = 32, rotations: int = 3):
     q, r = np.linalg.qr(rng.standard_normal((3, 3)))
     directions = directions @ (q * np.sign(np.diag(r))).T
     approaches = np.repeat(-directions, rotations, axis=0)
-    angles = (rng.uniform(0, np.pi) + np.arange(rotations) * (np.pi / rotations))
+    angles = _angles(rng, rotations, np.pi)
     angles = np.tile(angles, count)
     frames = np.array([frame(d) for d in approaches])
     closings = np.cos(angles)[:, None] * frames[:, :, 0] + np.sin(angles)[:, None] * frames[:, :, 1]
@@ -308,7 +313,7 @@ def _sphere_candidates(model, rng, count: int = 32, rotations: int = 3):
 def _plane_candidates(model, rng):
     if model.radius is None:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
-    azimuths = rng.uniform(0, 2 * np.pi) + np.arange(8) * (2 * np.pi / 8)
+    azimuths = _angles(rng, 8, 2 * np.pi)
     inward = -_circle(azimuths)
     return np.zeros_like(inward), inward, np.tile([0.0, 0.0, 1.0], (len(inward), 1))
 
@@ -668,7 +673,7 @@ def _run_filter(points, normals, centres, rotations, com, gripper, min_quality, 
     multiple of ``CANDIDATE_BUCKET``), its outputs cut back to the C candidates, float64."""
     count, dtype = len(centres), np.float32
     c_pad = _bucket(count, CANDIDATE_BUCKET)
-    n_pad = max(MIN_POINTS_BUCKET, 1 << (len(points) - 1).bit_length())
+    n_pad = bucket_size(len(points))
     pts, nrm = np.zeros((n_pad, 3), dtype), np.zeros((n_pad, 3), dtype)
     pts[:len(points)], nrm[:len(points)] = points, normals
     valid = np.arange(n_pad) < len(points)

@@ -34,6 +34,8 @@ import dataclasses
 
 import numpy as np
 
+from .sim import _numbers
+
 #: Simulation step (s) and the phases' durations (s): settle, approach, close.
 TIMESTEP = 0.001
 SETTLE, APPROACH, CLOSE = 0.5, 0.5, 0.6
@@ -119,10 +121,6 @@ def _connected_bodies(mesh) -> list[np.ndarray]:
     used = np.zeros(len(vertices), bool)
     used[faces.reshape(-1)] = True
     return [vertices[(label == c) & used] for c in range(count) if np.any(used[label == c])]
-
-
-def _numbers(values) -> str:
-    return " ".join(f"{float(v):.9g}" for v in np.ravel(values))
 
 
 def trial_mjcf(mesh, gripper, width: float, *, pieces=None, scale: float = 1.0, up=2,
@@ -280,7 +278,7 @@ def lift_trial(mesh, pose, width: float, gripper, *, pieces=None, scale: float =
     travel = gripper.max_width * s / 2
     run(CLOSE, lambda u: data.ctrl.__setitem__(slice(None), start + smooth(u) * (travel - start)))
     # The object's point midway between the fingertips now, in the object's frame.
-    hand_rot, hand_pos = data.xmat[hand].reshape(3, 3), data.xpos[hand].copy()
+    hand_pos = data.xpos[hand].copy()
     obj_rot, obj_pos = data.xmat[obj].reshape(3, 3).copy(), data.xpos[obj].copy()
     held = obj_rot.T @ (hand_pos - obj_pos)
     if not floor:
