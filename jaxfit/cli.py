@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _cache
+from . import _cache, _checks
 from .evaluation import evaluate as evaluation
 from .evaluation import scenarios
 from .evaluation.synthetic import COMPOSITES
@@ -143,15 +143,14 @@ def _check_outputs(args) -> None:
 def _check_sim_options(args) -> None:
     """--urdf and --mjcf: they need --out, a usable --name, and positive --density and
     --scale; their files must be writable."""
-    from .io.sim import NAME
+    from .io.sim import NAME, _positive
 
     if not args.out:
         raise ValueError("--urdf and --mjcf write into the --out folder: give --out DIR")
     if not NAME.fullmatch(args.name):
         raise ValueError(f"--name {args.name!r}: use letters, digits, '_', '.' or '-'")
     for flag, value in (("--density", args.density), ("--scale", args.scale)):
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{flag} must be positive and finite, got {value}")
+        _positive(value, flag)
     for flag, suffix in (("--urdf", ".urdf"), ("--mjcf", ".xml")):
         if getattr(args, flag[2:]):
             _file_target(str(Path(args.out) / f"{args.name}{suffix}"), flag)
@@ -320,11 +319,10 @@ def _demo_decomposition(args):
 def _cmd_grasp(args):
     from .decomposition import decompose
     from .grasping import ParallelJaw, grasps
+    from .io.sim import _positive
 
-    if not (np.isfinite(args.scale) and args.scale > 0):
-        raise ValueError(f"--scale must be positive and finite, got {args.scale}")
-    if args.top < 1:
-        raise ValueError(f"--top must be a positive integer, got {args.top}")
+    _positive(args.scale, "--scale")
+    _checks.positive(args.top, "--top", integer=True)
     width = 0.085 / args.scale if args.gripper_width is None else args.gripper_width
     gripper = ParallelJaw(
         max_width=width,
@@ -392,6 +390,11 @@ def _version() -> str:
     return f"jaxfit {__version__} (jax {jax.__version__})"
 
 
+def _threshold(parser) -> None:
+    parser.add_argument("--threshold", type=float, default=None,
+                        help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
+
+
 def _seed(p, what="sampling and fitting"):
     p.add_argument("--seed", type=int, default=0,
                    help=f"random seed of the {what}: the same seed gives the same result "
@@ -425,8 +428,7 @@ def _add_fit(sub):
 def _fit_options(p, required):
     p.add_argument("--shape", required=required, choices=list(REGISTRY),
                    help="the primitive to fit")
-    p.add_argument("--threshold", type=float, default=None,
-                   help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
+    _threshold(p)
     _seed(p)
     p.add_argument("--estimator", choices=ESTIMATORS, default=None,
                    help="minimal-sample estimator (default: the shape's best)")
@@ -446,8 +448,7 @@ def _add_detect(sub):
                              f"{' '.join(DEFAULT_SHAPES)}; choices: {', '.join(REGISTRY)})")
     detect.add_argument("--min-inliers", type=int, default=None, metavar="M",
                         help="smallest primitive worth reporting (default 1%% of the points)")
-    detect.add_argument("--threshold", type=float, default=None,
-                        help="inlier distance (default: 0.5%% of the bounding-box diagonal)")
+    _threshold(detect)
     _num_points(detect)
     _seed(detect)
     detect.add_argument("--out", metavar="DIR",

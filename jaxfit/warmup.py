@@ -15,7 +15,7 @@ import os
 import time
 from collections.abc import Callable, Iterable
 
-from ._checks import model_class
+from ._checks import model_class, positive
 from .shapes import REGISTRY
 
 #: Point buckets warmed by default: clouds of 513-1,024 points (and the small clouds of
@@ -68,8 +68,7 @@ def warmup(shapes: Iterable[str] | str | None = None, *, buckets: Iterable[int] 
     """
     jobs = _jobs(shapes, buckets)
     workers = max(1, min(4, (os.cpu_count() or 2) // 2)) if workers is None else workers
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    workers = positive(workers, "workers", integer=True)
     seconds: dict[str, float] = {}
     with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
         running = {pool.submit(_warm_one, name, size): f"{name}/{size}" for name, size in jobs}
