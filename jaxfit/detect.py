@@ -49,7 +49,7 @@ import numpy as np
 from . import _checks
 from .engine import FitOptions, default_threshold, fit
 from .io.inputs import converted
-from .normals import estimate_normals
+from .normals import distinct_rows, estimate_normals
 from .shapes import Model, trimesh_scene
 from .shapes._base import short
 
@@ -245,7 +245,7 @@ def median_spacing(points: np.ndarray) -> float:
     (copies of a point do not make the spacing 0); 0 if fewer than two are distinct."""
     from scipy.spatial import cKDTree
 
-    distinct = np.unique(points, axis=0)
+    distinct = distinct_rows(points)
     if len(distinct) < 2:
         return 0.0
     return float(np.median(cKDTree(distinct).query(distinct, k=2)[0][:, 1]))

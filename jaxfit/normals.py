@@ -472,7 +472,7 @@ def distinct_neighbours(points, queries, k, dist, hood):
         found = knn_near(points, k, queries, distinct=True)
         if found is not None:
             return found[0], k, found[1]
-    distinct = np.unique(points, axis=0)
+    distinct = distinct_rows(points)
     if len(distinct) < 3:
         return points, k, hood
     k = min(k, len(distinct))
