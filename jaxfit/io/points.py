@@ -112,9 +112,9 @@ def load_cloud(path, *, num_points: int = 20000, seed: int = 0, with_normals: bo
         raise LoadError(f"no points found in {path}: the file is empty")
 
     if ext in MESH_EXTENSIONS:
-        points, normals = _load_mesh(path, ext, num_points, seed)
+        points, normals = _load_mesh(path, ext, num_points, seed, with_normals)
     elif ext == ".npy":
-        points, normals = _load_npy(path)
+        points, normals = _load_npy(path, with_normals)
     else:
         points, normals = _load_text(path, with_normals)
     if normals is not None and with_normals:
@@ -136,8 +136,9 @@ def _check_points(points: np.ndarray, path: Path, what: str = "points") -> None:
         )
 
 
-def _load_mesh(path: Path, ext: str, num_points: int, seed: int):
-    """(points (N, 3), normals (N, 3) or None) of a mesh file (see ``load_cloud``)."""
+def _load_mesh(path: Path, ext: str, num_points: int, seed: int, with_normals: bool = True):
+    """(points (N, 3), normals (N, 3) or None) of a mesh file (see ``load_cloud``); the
+    normals only ``with_normals``."""
     import trimesh  # deferred: trimesh is slow to import and only meshes need it
 
     if ext == ".iv":
@@ -147,7 +148,7 @@ def _load_mesh(path: Path, ext: str, num_points: int, seed: int):
             mesh = load_iv(path)
         except IVError as err:  # (it names the file and line already)
             raise LoadError(str(err)) from err
-        return sample_oriented(mesh, num_points, seed, path)
+        return sample_oriented(mesh, num_points, seed, path, with_normals=with_normals)
     if ext == ".glb":
         _check_glb_chunks(path)
     elif ext in (".ply", ".off"):
@@ -164,7 +165,7 @@ def _load_mesh(path: Path, ext: str, num_points: int, seed: int):
 
     if isinstance(geom, trimesh.Scene):
         geom = merged(geom)
-    return sample_oriented(geom, num_points, seed, path)
+    return sample_oriented(geom, num_points, seed, path, with_normals=with_normals)
 
 
 def merged(scene):
@@ -331,7 +332,9 @@ def _sample_scaled(vertices, faces, num_points: int, seed, path):
     return samples * scale, where
 
 
-def _load_npy(path: Path) -> np.ndarray:
+def _load_npy(path: Path, with_normals: bool = True):
+    """(points (N, 3), normals (N, 3) or None) of a .npy file: unit columns 4-6 are the
+    normals (looked for only ``with_normals``)."""
     fmt = np.lib.format
     try:
         # The header first: its shape is believed only if the file holds that much data
@@ -372,7 +375,7 @@ def _load_npy(path: Path) -> np.ndarray:
         raise LoadError(f"could not read .npy file {path}: {e}") from e
     points = arr[:, :3].astype(np.float64)
     _check_points(points, path)
-    return points, unit_columns(arr[:, 3:6]) if arr.shape[1] >= 6 else None
+    return points, unit_columns(arr[:, 3:6]) if with_normals and arr.shape[1] >= 6 else None
 
 
 def unit_columns(columns) -> np.ndarray | None:
