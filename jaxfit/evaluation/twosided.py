@@ -286,21 +286,6 @@ def union_contains(models, points) -> np.ndarray:
     return out
 
 
-def _strictly_inside(models, points, tol: float) -> np.ndarray:
-    """(N,) bool: points deeper than ``tol`` inside some model's solid."""
-    out = np.zeros(len(points), dtype=bool)
-    for model in models:
-        if not _has_solid(model):
-            continue
-        rest = ~out
-        inside = model.contains(points[rest])
-        deep = np.zeros(len(inside), dtype=bool)
-        if inside.any():
-            deep[inside] = model.distance(points[rest][inside]) > tol
-        out[np.flatnonzero(rest)[deep]] = True
-    return out
-
-
 def union_surface(models, count: int, rng, step: float) -> tuple[np.ndarray, np.ndarray]:
     """Points on the union's surface: ``count`` drawn over the models' closed surfaces in
     proportion to their areas, keeping those where the point ``step`` out along the
@@ -395,16 +380,16 @@ def _to_union(models, points, union_points, tol: float) -> np.ndarray:
     from scipy.spatial import cKDTree
 
     points = _points(points)
-    out = np.min([m.distance(points) for m in models], axis=0)
-    deep = _strictly_inside(models, points, tol)
+    distances = [m.distance(points) for m in models]
+    out = np.min(distances, axis=0)
+    depth = np.zeros(len(points))  # L: the largest distance to a holding solid's surface
+    for model, distance in zip(models, distances, strict=True):
+        if _has_solid(model):
+            held = model.contains(points)
+            depth[held] = np.maximum(depth[held], distance[held])
+    deep = depth > tol
     if deep.any():
-        inner = points[deep]
-        lower = np.zeros(len(inner))
-        for model in models:
-            if _has_solid(model):
-                held = model.contains(inner)
-                if held.any():
-                    lower[held] = np.maximum(lower[held], model.distance(inner[held]))
+        inner, lower = points[deep], depth[deep]
         upper = cKDTree(union_points).query(inner)[0]
         area = sum(float(m.surface_area()) for m in models)
         spacing = np.sqrt(area / len(union_points))
