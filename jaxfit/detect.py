@@ -35,7 +35,6 @@ Measurements: docs/detect.md.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import sys
@@ -174,18 +173,15 @@ class Scene:
         preview.png (the points coloured by detection beside the primitives, as
         ``Decomposition.save`` draws). All are written to temporary files and renamed
         into place together (``io.atomic``). Returns the directory."""
-        from .io.atomic import replacing
+        from .io.atomic import replacing_all
         from .io.preview import render
 
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
         names = ["scene.json"]
         if self.points is not None:
             names += ["points.npy"] + (["preview.png"] if len(self.points) else [])
         if self.shapes:
             names.append("scene.glb")
-        with contextlib.ExitStack() as stack:
-            files = {name: stack.enter_context(replacing(out / name)) for name in names}
+        with replacing_all(directory, names) as files:
             files["scene.json"].write_text(json.dumps(self.to_dict(), indent=1))
             if "points.npy" in files:
                 np.save(files["points.npy"], np.asarray(self.points, np.float64))
@@ -193,7 +189,7 @@ class Scene:
                 self.to_trimesh().export(files["scene.glb"])
             if "preview.png" in files:
                 render(_Preview(self), files["preview.png"])
-        return out
+        return Path(directory)
 
     @classmethod
     def load(cls, directory) -> Scene:

@@ -212,15 +212,13 @@ class Grasps:
         """Write grasps.json (``to_dict``) and grasps.png (the first ``top`` grasps drawn on
         ``decomposition``'s primitives) into ``directory``, both renamed into place only
         when both are written (``io.atomic``)."""
-        from .io.atomic import replacing
+        from .io.atomic import replacing_all
         from .io.grasp_preview import render
 
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        with replacing(out / "grasps.json") as record, replacing(out / "grasps.png") as png:
-            record.write_text(json.dumps(self.to_dict(), indent=1))
-            render(decomposition, self, png, top=top)
-        return out
+        with replacing_all(directory, ("grasps.json", "grasps.png")) as files:
+            files["grasps.json"].write_text(json.dumps(self.to_dict(), indent=1))
+            render(decomposition, self, files["grasps.png"], top=top)
+        return Path(directory)
 
 
 # ----------------------------------------------------------------------------------------

@@ -276,19 +276,16 @@ class Decomposition:
         temporary files first and renamed into place only when all are done
         (``io.atomic``), so a save that fails or is interrupted while writing leaves the
         old files."""
-        from ..io.atomic import replacing
+        from ..io.atomic import replacing_all
         from ..io.preview import render
 
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
-        with (replacing(out / "parts.json") as parts, replacing(out / "points.npy") as points,
-              replacing(out / "decomposition.glb") as glb,
-              replacing(out / "preview.png") as preview):
-            parts.write_text(json.dumps(self.to_dict(), indent=1))
-            np.save(points, np.asarray(self.points, np.float64))
-            self.to_scene().export(glb)
-            render(self, preview)
-        return out
+        names = ("parts.json", "points.npy", "decomposition.glb", "preview.png")
+        with replacing_all(directory, names) as files:
+            files["parts.json"].write_text(json.dumps(self.to_dict(), indent=1))
+            np.save(files["points.npy"], np.asarray(self.points, np.float64))
+            self.to_scene().export(files["decomposition.glb"])
+            render(self, files["preview.png"])
+        return Path(directory)
 
     def summary(self) -> str:
         lines = [f"{len(self.parts)} parts from {len(self.points)} points "

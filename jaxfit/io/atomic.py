@@ -34,3 +34,14 @@ def replacing(path, *, private: bool = False):
     finally:
         if os.path.exists(temporary):
             os.unlink(temporary)
+
+
+@contextlib.contextmanager
+def replacing_all(directory, names):
+    """Yield {name: temporary path} for the files ``names`` in ``directory`` (made if
+    missing), each as ``replacing`` gives: renamed into place when the block is left,
+    all removed if it raised, so a save that fails leaves the old files."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    with contextlib.ExitStack() as stack:
+        yield {name: stack.enter_context(replacing(out / name)) for name in names}
