@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.atomic import replacing
+from .io.atomic import replacing, write_json
 from .io.points import SUPPORTED_EXTENSIONS
 
 TASKS = ("fit", "detect", "decompose")
@@ -246,8 +246,7 @@ def run_model(job: Job, task: str, options: dict, out: str) -> dict:
                        if p.is_file() and p.name != STATUS and not p.name.startswith("."))
         record = {"row": row, "task": task, "options": options, "source": _stamp(job),
                   "files": files}
-        with replacing(folder / STATUS) as path:
-            path.write_text(json.dumps(record, indent=1))
+        write_json(folder / STATUS, record)
     except OSError as err:
         row.update(status="failed", error=f"cannot write {folder / STATUS}: {err}")
     return row
@@ -261,8 +260,7 @@ def _fit(source: str, folder: Path, options: dict) -> dict:
     points = load_points(source, num_points=options["num_points"], seed=options["seed"])
     (shape,) = options["shapes"]
     result = fit(points, shape, key=options["seed"])
-    with replacing(folder / "fit.json") as path:
-        path.write_text(json.dumps(result.to_dict(), indent=1))
+    write_json(folder / "fit.json", result.to_dict())
     with replacing(folder / "model.ply") as path:
         result.model.to_mesh().export(path)
     inside = np.asarray(result.model.distance(points[result.inliers]))
@@ -493,8 +491,7 @@ def write_summary(rows: list[dict], out, meta: dict) -> None:
                      for row in rows)
     with replacing(out / "summary.csv") as path:
         path.write_text(text.getvalue())
-    with replacing(out / "summary.json") as path:
-        path.write_text(json.dumps({**meta, "models": rows}, indent=1))
+    write_json(out / "summary.json", {**meta, "models": rows})
 
 
 # ----- the entry point -----------------------------------------------------------------
@@ -527,13 +524,12 @@ def run_batch(inputs, out, *, task: str = "decompose", shapes=None, workers: int
     Returns a ``Summary``. Bad arguments (an unknown task, no model found, Dask missing)
     raise ValueError before any model is run.
     """
-    from .shapes import REGISTRY
+    from ._checks import model_class
 
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; use one of {', '.join(TASKS)}")
-    shapes = [shapes] if isinstance(shapes, str) else (list(shapes) if shapes else None)
-    if unknown := [s for s in shapes or () if s not in REGISTRY]:
-        raise ValueError(f"unknown shape {unknown[0]!r}; use some of {', '.join(REGISTRY)}")
+    shapes = [shapes] if isinstance(shapes, str | type) else (list(shapes) if shapes else None)
+    shapes = [model_class(s).name for s in shapes] if shapes else None  # names go to JSON
     if task == "fit" and (shapes is None or len(shapes) != 1):
         raise ValueError("the fit task needs exactly one shape (--shape S)")
     remote = scheduler is not None and not (isinstance(scheduler, str) and scheduler == "local")

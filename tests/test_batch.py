@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxfit import batch
+from jaxfit import Sphere, batch
 from jaxfit.batch import COLUMNS, Job, find_jobs, run_batch
 from jaxfit.cli import main
 from jaxfit.evaluation.synthetic import demo_cloud
@@ -118,6 +118,11 @@ def test_summary_records_failures_and_a_rerun_skips_finished_models(tmp_path, mo
     ran.clear()
     run_batch([models], out, task="fit", shapes="sphere", workers=0, seed=1)
     assert len(ran) == 3
+    # The same shape spelled otherwise (a class, capitals) is the same options: reused.
+    ran.clear()
+    run_batch([models], out, task="fit", shapes=[Sphere], workers=0, seed=1)
+    run_batch([models], out, task="fit", shapes=" Sphere", workers=0, seed=1)
+    assert ran == ["bad.xyz", "bad.xyz"]
 
 
 def test_bad_arguments_fail_before_any_model_runs(tmp_path, monkeypatch):

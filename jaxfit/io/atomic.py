@@ -5,6 +5,7 @@ or the new one, never a part."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -45,3 +46,9 @@ def replacing_all(directory, names):
     out.mkdir(parents=True, exist_ok=True)
     with contextlib.ExitStack() as stack:
         yield {name: stack.enter_context(replacing(out / name)) for name in names}
+
+
+def write_json(path, data, *, indent: int = 1) -> None:
+    """Write ``data`` as JSON to ``path`` whole or not at all (``replacing``)."""
+    with replacing(path) as part:
+        part.write_text(json.dumps(data, indent=indent))
