@@ -46,9 +46,9 @@ import jax
 import numpy as np
 
 from . import _checks
-from .engine import FitOptions, default_threshold, fit
+from .engine import FitOptions, default_threshold, fit_batch
 from .io.inputs import converted
-from .normals import distinct_rows, estimate_normals
+from .normals import distinct_inverse, distinct_rows, pair_normals
 from .shapes import Model, trimesh_scene
 from .shapes._base import short
 
@@ -228,12 +228,30 @@ def _indices(values, name: str) -> np.ndarray:
     return arr
 
 
-#: Mean radius pairs per point above which ``components`` joins points through
+#: Mean radius pairs per point above which ``RadiusGraph`` joins points through
 #: ``capped_pairs`` (bounded memory) instead of listing every pair (a dense cluster of k
 #: points has ~k^2 / 2: 20,000 near-copies of one point needed 9 GB).
 PAIR_BUDGET = 32
 
 # ----- pure pieces --------------------------------------------------------------------
+
+
+def _spacing(tree, distinct: np.ndarray) -> float:
+    """Median distance from each of the distinct points (M, 3) to its nearest other one
+    (``tree`` over them); 0 if fewer than two. The query is bounded by 4 times the
+    median of a subsample's: an outlier's nearest neighbour, far away, had cost a search
+    through much of the tree, and the median does not read how far it is unless more
+    than half of the points are that far (then the query runs unbounded)."""
+    m = len(distinct)
+    if m < 2:
+        return 0.0
+    rows = np.linspace(0, m - 1, min(m, 1024)).astype(np.int64)  # (evenly spread)
+    guess = np.median(tree.query(distinct[rows], k=2)[0][:, 1])
+    if guess > 0:
+        near = tree.query(distinct, k=2, distance_upper_bound=4.0 * guess)[0][:, 1]
+        if np.count_nonzero(np.isfinite(near)) * 2 > m:
+            return float(np.median(near))
+    return float(np.median(tree.query(distinct, k=2)[0][:, 1]))
 
 
 def median_spacing(points: np.ndarray) -> float:
@@ -242,63 +260,157 @@ def median_spacing(points: np.ndarray) -> float:
     from scipy.spatial import cKDTree
 
     distinct = distinct_rows(points)
-    if len(distinct) < 2:
-        return 0.0
-    return float(np.median(cKDTree(distinct).query(distinct, k=2)[0][:, 1]))
+    return _spacing(cKDTree(distinct), distinct) if len(distinct) >= 2 else 0.0
 
 
 def capped_pairs(tree, points: np.ndarray, radius: float) -> np.ndarray:
-    """(E, 2) pairs of points (N, 3) within radius, at most ``PAIR_BUDGET`` per point
-    (its nearest ones, from ``tree`` over points), plus every point joined to the first
-    point of its cell of side radius / sqrt(3) (any two points of a cell lie within
-    radius). Memory O(N) however dense the cloud; the components match the full radius
-    graph's unless two regions denser than ``PAIR_BUDGET`` points within radius meet only
-    through pairs neither side lists (across a cell border)."""
+    """(E, 2) pairs of points (N, 3) within radius, each once (first < second): at most
+    ``PAIR_BUDGET`` per point (its nearest ones, from ``tree`` over points), plus every
+    point joined to the first point of its cell of side radius / sqrt(3) (any two points
+    of a cell lie within radius). Memory O(N) however dense the cloud; the components
+    match the full radius graph's unless two regions denser than ``PAIR_BUDGET`` points
+    within radius meet only through pairs neither side lists (across a cell border)."""
     dist, near = tree.query(points, k=PAIR_BUDGET + 1, distance_upper_bound=radius)
     rows = np.broadcast_to(np.arange(len(points))[:, None], near.shape)
     listed = np.isfinite(dist) & (near != rows)
     cells = np.floor(points / (radius / np.sqrt(3.0))).astype(np.int64)
     _, first, cell_of = np.unique(cells, axis=0, return_index=True, return_inverse=True)
     same_cell = np.column_stack([np.arange(len(points)), first[cell_of.reshape(-1)]])
-    return np.concatenate([np.column_stack([rows[listed], near[listed]]), same_cell])
+    pairs = np.concatenate([np.column_stack([rows[listed], near[listed]]), same_cell])
+    pairs = np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1)
+    return np.unique(pairs, axis=0)
+
+
+def pair_bound(points: np.ndarray, radius: float) -> float:
+    """An upper bound on the pairs of points (N, 3) within radius: every pair lies in
+    two neighbouring cubic cells of side radius, so it is at most the sum over cells of
+    its count times the count of its 27 cells, halved. Two bincount-sized passes; on the
+    scenes' surfaces about 3 times the true count, so that a cloud well within
+    ``PAIR_BUDGET`` needs no exact count (``count_neighbors`` cost twice the listing)."""
+    cells = np.floor((points - points.min(axis=0)) / radius).astype(np.int64) + 1
+    dims = cells.max(axis=0) + 2
+    if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
+        return np.inf  # (no exact int64 key: the caller counts exactly)
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    cell, count = np.unique(keys, return_counts=True)
+    around = np.zeros(len(cell))
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            shifted = cell + (dx * dims[1] + dy) * dims[2]
+            for dz in (-1, 0, 1):
+                at = np.minimum(np.searchsorted(cell, shifted + dz), len(cell) - 1)
+                around += np.where(cell[at] == shifted + dz, count[at], 0)
+    return float(np.dot(count, around) - len(points)) / 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RadiusGraph:
+    """A cloud's points joined within ``radius``, over its distinct rows (copies of a
+    point share its row and its answers): the one neighbour structure of a ``detect``
+    call. Its components (groups, supports), its adjacency (the final assignment) and
+    the estimated normals all read it, so the cloud is put in one KD-tree once.
+
+    distinct : (M, 3) distinct points; inverse : (N,) each point's row in it;
+    pairs : (E, 2) rows within radius, first < second (at most ``PAIR_BUDGET`` a row on
+    average; a denser cloud lists ``capped_pairs``); adjacency : (M, M) symmetric CSR
+    matrix of the pairs (float32 ones: ``near`` multiplies by it); tree : the cKDTree
+    over distinct; spacing : median nearest-neighbour distance among distinct points;
+    radius : the radius.
+    """
+
+    distinct: np.ndarray
+    inverse: np.ndarray
+    pairs: np.ndarray
+    adjacency: object
+    tree: object
+    spacing: float
+    radius: float
+
+    @classmethod
+    def of(cls, points: np.ndarray, connect: float | None = None,
+           radius: float | None = None) -> RadiusGraph:
+        """The graph of points (N, 3) at ``radius``, or at ``connect`` times their
+        median spacing."""
+        from scipy.sparse import coo_matrix
+        from scipy.spatial import cKDTree
+
+        distinct, inverse = distinct_inverse(points)
+        tree = cKDTree(distinct)
+        spacing = _spacing(tree, distinct)
+        radius = connect * spacing if radius is None else radius
+        m = len(distinct)
+        if m < 2 or not radius > 0:
+            pairs = np.empty((0, 2), np.int64)
+        elif (pair_bound(distinct, radius) <= PAIR_BUDGET * m
+              # count_neighbors prunes whole node pairs within radius, so it counts a
+              # dense cluster's ~k^2 pairs without listing them (ordered pairs, each
+              # point with itself included).
+              or (tree.count_neighbors(tree, radius) - m) // 2 <= PAIR_BUDGET * m):
+            pairs = tree.query_pairs(radius, output_type="ndarray").astype(np.int64)
+        else:
+            pairs = capped_pairs(tree, distinct, radius)
+        ones = np.ones(2 * len(pairs), np.float32)
+        adjacency = coo_matrix((ones, (np.r_[pairs[:, 0], pairs[:, 1]],
+                                       np.r_[pairs[:, 1], pairs[:, 0]])), shape=(m, m)).tocsr()
+        return cls(distinct, inverse, pairs, adjacency, tree, spacing, float(radius))
+
+    def components(self, members: np.ndarray) -> np.ndarray:
+        """Labels (K,) of the connected components of the points ``members`` (K,)
+        (indices into the cloud) joined within the radius, numbered by decreasing size
+        in points (0 is the largest; ties in order of first appearance)."""
+        from scipy.sparse.csgraph import connected_components
+
+        if len(members) == 0:
+            return np.empty(0, np.int64)
+        rows = self.inverse[members]
+        mark = np.zeros(len(self.distinct), bool)
+        mark[rows] = True
+        kept = np.flatnonzero(mark)
+        position = np.cumsum(mark) - 1
+        _, labels = connected_components(self.adjacency[kept][:, kept], directed=False)
+        labels = labels[position[rows]]
+        by_size = np.argsort(-np.bincount(labels), kind="stable")
+        return np.argsort(by_size)[labels]
+
+    def near(self, owner: np.ndarray, count: int) -> np.ndarray:
+        """(count, N) bool: whether each point lies within the radius of (or is) a
+        point with ``owner`` (N,) equal to the row's index (-1: no owner)."""
+        rows = self.inverse[owner >= 0]
+        member = np.zeros((len(self.distinct), count), np.float32)
+        member[rows, owner[owner >= 0]] = 1.0
+        touching = (member > 0) | (self.adjacency @ member > 0)
+        return touching[self.inverse].T
+
+    def normals(self, k: int) -> np.ndarray:
+        """(N, 3) unoriented normals of the cloud's points: ``pair_normals`` over each
+        distinct point's neighbours within the radius (its k nearest where they are
+        fewer than ``normals.PAIR_LEAST``)."""
+        return pair_normals(self.distinct, self.pairs, min(k, len(self.distinct)),
+                            self.tree)[self.inverse]
 
 
 def components(points: np.ndarray, radius: float) -> np.ndarray:
     """Labels (N,) of the connected components of points (N, 3) joined within radius,
     numbered by decreasing size (0 is the largest)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
+    return RadiusGraph.of(points, radius=radius).components(np.arange(len(points)))
 
-    distinct, inverse = np.unique(points, axis=0, return_inverse=True)
-    if len(distinct) < len(points):  # copies join their point: pairs among distinct ones
-        labels = components(distinct, radius)[inverse.reshape(-1)]
-        by_size = np.argsort(-np.bincount(labels), kind="stable")
-        return np.argsort(by_size)[labels]
-    n = len(points)
-    tree = cKDTree(points)
-    # count_neighbors prunes whole node pairs within radius, so it counts a dense cluster's
-    # ~k^2 pairs without listing them (ordered pairs, each point with itself included).
-    if (tree.count_neighbors(tree, radius) - n) // 2 <= PAIR_BUDGET * n:
-        pairs = tree.query_pairs(radius, output_type="ndarray")
-    else:
-        pairs = capped_pairs(tree, points, radius)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    by_size = np.argsort(-np.bincount(labels), kind="stable")
-    return np.argsort(by_size)[labels]
+
+def compatible(model: Model, points, normals, threshold: float, cos_max: float) -> np.ndarray:
+    """Indices into points (N, 3) of the model's compatible points: within threshold,
+    with normals (N, 3) (any sign) within the angle arccos(cos_max) of the model's
+    surface normal there."""
+    near = np.flatnonzero(model.distance(points) < threshold)
+    if near.size == 0:
+        return near
+    along = model.surface_normal(points[near], 0.1 * threshold)
+    return near[np.abs(np.einsum("ij,ij->i", along, normals[near])) >= cos_max]
 
 
 def support(model: Model, points, normals, threshold: float, cos_max: float,
             radius: float) -> np.ndarray:
     """Indices into points (N, 3) of the model's support: the largest connected
-    component of the points within threshold whose normals (N, 3) (any sign) are within
-    the angle arccos(cos_max) of the model's surface normal."""
-    near = np.flatnonzero(model.distance(points) < threshold)
-    if near.size == 0:
-        return near
-    along = model.surface_normal(points[near], 0.1 * threshold)
-    near = near[np.abs(np.einsum("ij,ij->i", along, normals[near])) >= cos_max]
+    component of its compatible points (``compatible``) joined within radius."""
+    near = compatible(model, points, normals, threshold, cos_max)
     if near.size == 0:
         return near
     return near[components(points[near], radius) == 0]
@@ -412,21 +524,18 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
         _check_options(points, shapes, min_inliers, threshold, normals, max_angle, connect,
                        tolerance, fit_options)
     fit_points = _checks.positive(fit_points, "fit_points", integer=True)
+    graph = RadiusGraph.of(cloud, connect)
     if normals is None:
-        normals = estimate_normals(cloud, k=min(NORMAL_K, len(cloud)), orient=None)
-    key = _checks.prng_key(key)
-    spacing = median_spacing(cloud)
-    radius = connect * spacing
-    context = _Context(cloud, normals, threshold, float(np.cos(np.radians(max_angle))), radius,
-                       fit_points, tolerance, fit_options)
+        normals = graph.normals(NORMAL_K)
+    context = _Context(cloud, normals, threshold, float(np.cos(np.radians(max_angle))),
+                       graph, fit_points, tolerance, fit_options, tuple(classes),
+                       _entropy(key))
     found: list[Detection] = []
     live = np.ones(len(cloud), bool)  # unassigned points in groups that may still give
     rnd, started = 0, time.perf_counter()
-    while groups := _groups(cloud, np.flatnonzero(live), radius, min_inliers):
+    while groups := _groups(graph, np.flatnonzero(live), min_inliers):
         live[:] = False
-        for g, group in enumerate(groups):
-            best = _best(context, classes, group, jax.random.fold_in(
-                jax.random.fold_in(key, rnd), g))
+        for group, best in zip(groups, _round(context, groups, rnd), strict=True):
             if best is None or len(best[1]) < min_inliers:
                 continue  # nothing left to find here: its points stay unassigned
             model, taken, cost = best
@@ -440,11 +549,11 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
         # Settling can leave a detection with fewer than min_inliers points (a sliver
         # between two surfaces that each took theirs back): it is dropped, and its
         # points stay unassigned.
-        found = [d for d in _settled(found, cloud, threshold, radius)
+        found = [d for d in _settled(found, cloud, threshold, graph)
                  if len(d.indices) >= min_inliers]
     taken = np.concatenate([d.indices for d in found]) if found else np.empty(0, int)
     unassigned = np.setdiff1d(np.arange(len(cloud)), taken)
-    return Scene(found, unassigned, threshold, spacing, radius, cloud)
+    return Scene(found, unassigned, threshold, graph.spacing, graph.radius, cloud)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -455,75 +564,100 @@ class _Context:
     normals: np.ndarray  # (N, 3)
     threshold: float
     cos_max: float
-    radius: float
+    graph: RadiusGraph
     fit_points: int
     tolerance: float
     fit_options: dict
+    classes: tuple
+    entropy: tuple  # the key's words (``_entropy``)
 
 
-def _groups(cloud, idx, radius, min_inliers):
-    """Index arrays into cloud of the connected components of cloud[idx] with at least
-    min_inliers points, largest first."""
+def _entropy(key) -> tuple[int, ...]:
+    """The words of ``key`` (an int seed or a JAX key) that seed every random choice of
+    a detect call (``_seed``, ``_rng``): one conversion, where a ``fold_in`` per fit had
+    cost ~1 ms of dispatch each."""
+    return tuple(int(w) for w in np.asarray(jax.random.key_data(_checks.prng_key(key))).ravel())
+
+
+def _rng(ctx: _Context, *path: int) -> np.random.Generator:
+    """The NumPy generator of the choice at ``path`` (round, group, ...)."""
+    return np.random.default_rng([*ctx.entropy, *path])
+
+
+def _seed(ctx: _Context, *path: int) -> int:
+    """The int seed of the fit_batch call at ``path`` (round, shape)."""
+    return int(np.random.SeedSequence([*ctx.entropy, *path]).generate_state(1)[0])
+
+
+def _groups(graph: RadiusGraph, idx, min_inliers):
+    """Index arrays into the cloud of the connected components of its points idx with at
+    least min_inliers points, largest first."""
     if len(idx) < min_inliers:
         return []
-    labels = components(cloud[idx], radius)
+    labels = graph.components(idx)
     sizes = np.bincount(labels)
-    return [idx[labels == lab] for lab in np.flatnonzero(sizes >= min_inliers)]
+    order = np.argsort(labels, kind="stable")
+    parts = np.split(idx[order], np.cumsum(sizes)[:-1])
+    return [part for part, size in zip(parts, sizes, strict=True) if size >= min_inliers]
 
 
-def _best(ctx: _Context, classes, group, key):
-    """The winning (model, support, cost) in one group, or None if no shape fits.
+def _round(ctx: _Context, groups, rnd):
+    """The winning (model, support, cost) of each group of round ``rnd`` (None where no
+    shape fits), every group's candidates of one shape fitted in one ``fit_batch`` call.
 
-    Shape s is fitted with ``fold_in(key, s)``. When a more complex shape wins, each
-    simpler one is refitted to the winner's support (key ``fold_in(key, S + s)``) and
-    takes its place if its own support is within the tolerance: a big sphere that won a
-    box's face with a few stray points is reported as the plane it imitates.
+    Shape s of S is fitted to every group in the call seeded ``_seed(rnd, s)`` (group g
+    its cloud g), on the subsample ``_rng(rnd, g)`` draws. When a more complex shape
+    wins, each simpler one is refitted to the winner's support (call ``_seed(rnd, S +
+    s)``, subsample ``_rng(rnd, g, S + s)``) and takes its place if its own support is
+    within the tolerance: a big sphere that won a box's face with a few stray points is
+    reported as the plane it imitates.
     """
-    candidates = [_candidate(ctx, cls, group, group, jax.random.fold_in(key, s))
-                  for s, cls in enumerate(classes)]
-    sizes = np.array([len(c[1]) if c else 0 for c in candidates])
-    if not sizes.any():
-        return None
-    costs = np.array([c[2] if c else np.inf for c in candidates])
-    win = choose(sizes, costs, ctx.tolerance)
-    for s in range(win):
-        simpler = _candidate(ctx, classes[s], candidates[win][1], group,
-                             jax.random.fold_in(key, len(classes) + s))
-        if simpler and len(simpler[1]) * (1.0 + ctx.tolerance) >= sizes[win]:
-            return simpler
-    return candidates[win]
+    count = len(ctx.classes)
+    samples = [_fit_points(group, ctx.fit_points, _rng(ctx, rnd, g))
+               for g, group in enumerate(groups)]
+    candidates = list(zip(*[_candidates(ctx, cls, samples, groups, _seed(ctx, rnd, s))
+                            for s, cls in enumerate(ctx.classes)], strict=True))
+    best = [None] * len(groups)
+    wins = {}
+    for g, found in enumerate(candidates):
+        sizes = np.array([len(c[1]) if c else 0 for c in found])
+        if sizes.any():
+            costs = np.array([c[2] if c else np.inf for c in found])
+            wins[g] = choose(sizes, costs, ctx.tolerance)
+            best[g] = found[wins[g]]
+    for s in range(count - 1):
+        pending = [g for g, win in wins.items() if win > s]
+        if not pending:
+            break
+        fit_on = [_fit_points(best[g][1], ctx.fit_points, _rng(ctx, rnd, g, count + s))
+                  for g in pending]
+        simpler = _candidates(ctx, ctx.classes[s], fit_on, [groups[g] for g in pending],
+                              _seed(ctx, rnd, count + s))
+        for g, c in zip(pending, simpler, strict=True):
+            if c and len(c[1]) * (1.0 + ctx.tolerance) >= len(best[g][1]):
+                best[g] = c
+                del wins[g]
+    return best
 
 
-def _settled(found, cloud, threshold, radius):
+def _settled(found, cloud, threshold, graph: RadiusGraph):
     """Detections after a final assignment: every point within threshold of at least one
-    detection's model, and within radius of that detection's points, goes to the
-    nearest such model, repeated while points move (at most SETTLE_ROUNDS times). This
-    gives the points whose estimated normals an edge blurred (they failed the normal
-    test) to their surface, and splits the band where two surfaces meet (a lying
+    detection's model, and within the radius of that detection's points (``graph``), goes
+    to the nearest such model, repeated while points move (at most SETTLE_ROUNDS times).
+    This gives the points whose estimated normals an edge blurred (they failed the
+    normal test) to their surface, and splits the band where two surfaces meet (a lying
     cylinder's underside within threshold of the floor) by distance instead of by which
     was taken first; the repetition lets a surface take back a band wider than radius
     (docs/detect.md). Other points stay unassigned."""
-    from scipy.spatial import cKDTree
-
     model_dist = np.stack([d.model.distance(cloud) for d in found])  # (D, N)
     owner = np.full(len(cloud), -1)
     for i, d in enumerate(found):
         owner[d.indices] = i
-    # Adjacency among distinct points only: copies of a point share its answer, and a
-    # KD-tree leaf of many copies made every query near it scan them all (20,000 copies
-    # took _settled from 1 s to 16 s).
-    distinct, inverse = np.unique(cloud, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    every = np.arange(len(cloud))
     for _ in range(SETTLE_ROUNDS):
-        dist = np.full_like(model_dist, np.inf)
-        for i in range(len(found)):
-            members = np.unique(inverse[owner == i])
-            if len(members):
-                adjacent = cKDTree(distinct[members]).query(
-                    distinct, distance_upper_bound=radius)[0][inverse]
-                dist[i] = np.where(np.isfinite(adjacent), model_dist[i], np.inf)
+        dist = np.where(graph.near(owner, len(found)), model_dist, np.inf)
         new = np.argmin(dist, axis=0)
-        new[dist[new, np.arange(len(cloud))] >= threshold] = -1
+        new[dist[new, every] >= threshold] = -1
         if np.array_equal(new, owner):
             break
         owner = new
@@ -531,27 +665,35 @@ def _settled(found, cloud, threshold, radius):
             for i, d in enumerate(found)]
 
 
-def _fit_points(group, fit_points, key):
-    """At most fit_points indices of group, drawn without replacement from key: the
-    fit sees a subsample, its support is then measured on the whole group."""
+def _fit_points(group, fit_points, rng):
+    """At most fit_points indices of group, drawn without replacement by rng: the fit
+    sees a subsample, its support is then measured on the whole group."""
     if len(group) <= fit_points:
         return group
-    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)))
     return np.sort(rng.choice(group, fit_points, replace=False))
 
 
-def _candidate(ctx: _Context, cls, fit_on, group, key):
-    """(model, support indices into the cloud, cost) of shape cls fitted to (a subsample
-    of) the points cloud[fit_on], its support measured on cloud[group]; None if no model
-    could be fitted."""
-    sample = _fit_points(fit_on, ctx.fit_points, key)
-    if len(sample) < cls.sample_size:
-        return None
-    try:
-        result = fit(ctx.cloud[sample], cls, normals=ctx.normals[sample],
-                     threshold=ctx.threshold, key=key, **ctx.fit_options)
-    except _checks.FitError:
-        return None
-    local = support(result.model, ctx.cloud[group], ctx.normals[group], ctx.threshold,
-                    ctx.cos_max, ctx.radius)
-    return result.model, group[local], result.cost
+def _candidates(ctx: _Context, cls, fit_on, groups, seed: int):
+    """Per group: (model, support indices into the cloud, cost) of shape cls fitted to
+    the points cloud[fit_on[g]], its support measured on cloud[groups[g]]; None where no
+    model could be fitted. One ``fit_batch`` call (seed ``seed``) for all groups."""
+    out = [None] * len(groups)
+    which = [g for g, sample in enumerate(fit_on) if len(sample) >= cls.sample_size]
+    if not which:
+        return out
+    fits = fit_batch([ctx.cloud[fit_on[g]] for g in which], cls,
+                     normals=[ctx.normals[fit_on[g]] for g in which],
+                     thresholds=ctx.threshold, key=seed, skip_failures=True,
+                     **ctx.fit_options)
+    for g, result in zip(which, fits, strict=True):
+        if result is not None:
+            out[g] = result.model, _support(ctx, result.model, groups[g]), result.cost
+    return out
+
+
+def _support(ctx: _Context, model: Model, group) -> np.ndarray:
+    """``support`` of model on cloud[group] (indices into the cloud), joined through
+    the call's graph."""
+    near = group[compatible(model, ctx.cloud[group], ctx.normals[group], ctx.threshold,
+                            ctx.cos_max)]
+    return near[ctx.graph.components(near) == 0] if near.size else near

@@ -238,6 +238,57 @@ def distinct_rows(points: np.ndarray) -> np.ndarray:
     return ordered[keep]
 
 
+def distinct_inverse(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct (M, 3), inverse (N,)): ``distinct_rows(points)`` and the row of each
+    point of points (N, 3) in it, as ``numpy.unique(points, axis=0,
+    return_inverse=True)`` (one lexsort: about twice as fast)."""
+    order = np.lexsort(points.T[::-1])
+    ordered = points[order]
+    keep = np.ones(len(ordered), bool)
+    keep[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    inverse = np.empty(len(points), np.int64)
+    inverse[order] = np.cumsum(keep) - 1
+    return ordered[keep], inverse
+
+
+#: ``pair_normals`` takes a point's normal from its k nearest neighbours instead when
+#: fewer than this many points (itself included) lie within the radius.
+PAIR_LEAST = 6
+
+
+def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None) -> np.ndarray:
+    """Unoriented unit normals (M, 3) of distinct points (M, 3) by PCA over each point
+    and the points ``pairs`` (E, 2) joins it to (its neighbours within a radius, each
+    pair listed once); a point with fewer than ``PAIR_LEAST`` such points takes its
+    normal from its k nearest neighbours (from ``tree``, a cKDTree over points, when
+    given). The scatter sums are bincounts over the pairs'
+    differences (no tree query, no (M, k, 3) neighbourhoods): ``detect`` lists the pairs
+    for its connectivity anyway (docs/normals.md)."""
+    m = len(points)
+    if m < 3:
+        raise ValueError(f"normals need at least 3 distinct points, got {m}")
+    src = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    dst = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    diff = points[dst] - points[src]  # relative to the point itself: no digits lost
+    count = np.bincount(src, minlength=m) + 1.0  # (itself: a zero difference)
+    sums = [np.bincount(src, diff[:, a], m) for a in range(3)]
+
+    def scatter(a, b):
+        return np.bincount(src, diff[:, a] * diff[:, b], m) - sums[a] * sums[b] / count
+
+    xx, yy, zz, xy, xz, yz = (scatter(0, 0), scatter(1, 1), scatter(2, 2), scatter(0, 1),
+                              scatter(0, 2), scatter(1, 2))
+    cov = np.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], axis=1).reshape(-1, 3, 3)
+    out = smallest_eigenvectors(cov)
+    few = np.flatnonzero(count < PAIR_LEAST)
+    if len(few):
+        k = min(k, m)
+        hood = (knn(points, k, points[few]) if tree is None
+                else tree.query(points[few], k=k)[1])
+        out[few] = pca_normals(points, np.reshape(hood, (len(few), k)))
+    return out
+
+
 def _neighbours(points, near, queries, k: int, distinct: bool, workers: int):
     """(distances (M, k), indices (M, k) into pool, pool) of the k nearest of
     pool = points[near] (with ``distinct``: its distinct points) to each query (M, 3);
