@@ -43,14 +43,18 @@ def test_one_part_per_primitive_with_the_right_type(decomposed, name):
 @pytest.mark.slow
 @pytest.mark.parametrize("truth", [Cylinder(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.033, 0.1),
                                    Sphere(np.zeros(3), 0.05)], ids=["cylinder", "sphere"])
-def test_one_primitive_sliced_by_the_boxes_is_merged_back(truth):
-    # At gain 0.96 BoxDecomposition slices a closed can (or a ball) into three slabs, and
-    # each slab then fits the whole primitive: the slabs are merged into one part.
+def test_one_primitive_sliced_by_the_boxes_is_one_part(truth):
+    # At gain 0.96 BoxDecomposition slices a closed can (or a ball) into three slabs; the
+    # whole-object check finds that one primitive explains it before any box is cut.
     import trimesh
 
+    from jaxfit.decomposition.boxdecomp import decompose_boxes
+
     points = trimesh.sample.sample_surface(truth.to_mesh(), 4000, seed=0)[0]
+    slabs = decompose_boxes(points, gain=0.96, min_points=80, reference="root")
+    assert len(slabs.leaves) == 3
     result = decompose(points, gain=0.96, key=0)
-    assert len(result.tree.leaves) == 3
+    assert len(result.tree.leaves) == 1
     assert len(result.parts) == 1 and result.parts[0].indices.size == len(points)
     assert matches(result.parts[0].model, truth, 0.02), result.parts[0].model
 

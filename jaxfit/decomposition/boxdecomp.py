@@ -344,7 +344,8 @@ def box_volume(box: Box, floor: float) -> float:
 
 
 def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50, cuts=DEFAULT_CUTS,
-                    reference: str = "parent") -> BoxTree:
+                    reference: str = "parent", max_leaves: int | None = None,
+                    root: Box | None = None) -> BoxTree:
     """Split a cloud into boxes by recursive MVBB splitting (Hübner & Kragic 2008).
 
     Parameters
@@ -369,6 +370,10 @@ def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50, cuts=DE
         matters for the whole object. Surface points make every curved open patch split
         well under any parent-relative gain (halving an arc quarters its box), so
         "parent" splits curved objects into many boxes; "root" stops at the main parts.
+    max_leaves : int, optional
+        Stop splitting (in breadth-first order) once the tree has this many leaves.
+    root : jaxfit.Box, optional
+        ``mvbb(points)`` when the caller has it already (it is not checked).
 
     Returns
     -------
@@ -395,15 +400,18 @@ def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50, cuts=DE
         raise ValueError(f"cuts must be fractions strictly between 0 and 1, got {cuts!r}")
     if reference not in ("parent", "root"):
         raise ValueError(f"reference must be 'parent' or 'root', got {reference!r}")
+    if max_leaves is not None and (isinstance(max_leaves, bool) or int(max_leaves) != max_leaves
+                                   or max_leaves < 1):
+        raise ValueError(f"max_leaves must be an integer >= 1, got {max_leaves!r}")
 
-    root = mvbb(pts)
+    root = mvbb(pts) if root is None else root
     floor = volume_floor(root)
     volume = functools.partial(box_volume, floor=floor)
 
     # Breadth-first; each entry is [box, indices, children, parent, depth].
     nodes = [[root, np.arange(len(pts)), (), None, 0]]
-    i = 0
-    while i < len(nodes):
+    i, leaves = 0, 1
+    while i < len(nodes) and (max_leaves is None or leaves < max_leaves):
         box, idx, _, _, depth = nodes[i]
         halves = _best_cut(pts, idx, box, fractions, int(min_points), floor)
         if halves is not None:
@@ -412,6 +420,7 @@ def decompose_boxes(points, *, gain: float = 0.96, min_points: int = 50, cuts=DE
             if saved > (1.0 - gain) * volume(box if reference == "parent" else root):
                 nodes[i][2] = (len(nodes), len(nodes) + 1)
                 nodes += [[b, h, (), i, depth + 1] for b, h in zip(boxes, halves, strict=True)]
+                leaves += 1
         i += 1
     return BoxTree(tuple(BoxNode(*n) for n in nodes), float(gain), int(min_points), reference)
 

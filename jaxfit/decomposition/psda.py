@@ -45,6 +45,7 @@ from ..shapes import Box, Model, mass_properties, trimesh_scene
 from ..shapes._base import short
 from .boxdecomp import BoxNode, BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import shallow
+from .measure import EXPLAINED, Scorer
 
 #: The primitives tried on every part by default: the thesis's four.
 SHAPES = ("sphere", "cylinder", "cone", "box")
@@ -69,13 +70,22 @@ OWNER_SLACK = 2.0
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:
-    """One primitive tried on a part: the fitted model, its mean distance, and how far
-    its surface reaches out of the object's bounding box (the root MVBB), as a fraction
-    of that box's diagonal (0 when inside; always 0 for the part's own MVBB)."""
+    """One primitive tried on a part: the fitted model, its mean distance, how far its
+    surface reaches out of the object's bounding box (the root MVBB), as a fraction of
+    that box's diagonal (0 when inside; always 0 for the part's own MVBB), and the mean
+    distance of its closed surface to the object's points (``measure.Scorer``; NaN where
+    it was not measured: the thesis's candidates)."""
 
     model: Model
     mean_distance: float
     overshoot: float = 0.0
+    surface_distance: float = float("nan")
+
+    @property
+    def two_sided(self) -> float:
+        """The two-sided score: ``mean_distance + surface_distance`` (NaN if the surface
+        side was not measured)."""
+        return self.mean_distance + self.surface_distance
 
     @property
     def plausible(self) -> bool:
@@ -129,23 +139,25 @@ class Part:
             "num_points": int(self.indices.size),
             "indices": np.asarray(self.indices).tolist(),
             "box": self.box.to_dict(),
-            "candidates": {name: {"model": c.model.to_dict(), "mean_distance": c.mean_distance,
-                                  "overshoot": c.overshoot}
-                           for name, c in self.candidates.items()},
+            "candidates": {name: _candidate_dict(c) for name, c in self.candidates.items()},
             "transform": self.model.transform().tolist(),
             "volume": self.model.volume(),
             "centroid": self.model.centroid().tolist(),
         }
 
     @classmethod
-    def from_dict(cls, data: dict) -> Part:
+    def from_dict(cls, data: dict, indices=None) -> Part:
         """Inverse of ``to_dict`` (its derived entries, pose, volume and centroid, are
-        recomputed from the model rather than read)."""
+        recomputed from the model rather than read); ``indices`` stand in for a
+        dictionary written without them (a level's part: its split node's points)."""
+        if indices is not None:
+            data = dict(data, indices=indices)
         if "indices" not in data:
             raise ValueError("a part's dictionary has no 'indices' (written before "
                              "jaxfit stored them?)")
         candidates = {name: Candidate(Model.from_dict(c["model"]), float(c["mean_distance"]),
-                                      float(c.get("overshoot", 0.0)))
+                                      float(c.get("overshoot", 0.0)),
+                                      float(c.get("surface_distance", "nan")))
                       for name, c in data["candidates"].items()}
         box = Box.from_dict(data["box"])
         if "mvbb" in candidates:  # the part's own box is its MVBB candidate (one object)
@@ -175,6 +187,23 @@ class Decomposition:
     parts: tuple[Part, ...]
     tree: BoxTree
     seconds: float
+    levels: tuple[tuple[Part, ...], ...] = ()
+    method: str = "thesis"
+
+    def with_parts(self, count: int) -> Decomposition:
+        """The decomposition of ``count`` parts from the split hierarchy of one run
+        (``method="measured"``: ``levels[count - 1]``, the greedy's ``count``-part state,
+        each part's points a node of ``tree``); ValueError for a count the run did not
+        reach (1 .. ``len(levels)``)."""
+        if isinstance(count, bool) or not isinstance(count, numbers.Integral):
+            raise TypeError(f"count must be an integer, got {count!r}")
+        if not self.levels:
+            raise ValueError("this decomposition has no split hierarchy (method='thesis'); "
+                             "decompose with method='measured'")
+        if not 1 <= count <= len(self.levels):
+            raise ValueError(f"count must be in 1..{len(self.levels)} (the part counts of "
+                             f"the split hierarchy), got {count}")
+        return dataclasses.replace(self, parts=self.levels[count - 1])
 
     def to_scene(self):
         """A ``trimesh.Scene`` of the winning primitives, coloured by type."""
@@ -206,8 +235,11 @@ class Decomposition:
         hierarchy = self.tree.to_dict()
         hierarchy["leaf_labels"] = self.tree.leaf_labels(len(self.points)).tolist()
         out = {"num_points": int(len(self.points)), "seconds": self.seconds,
-               "parts": [part.to_dict() for part in self.parts], "totals": totals,
-               "hierarchy": hierarchy}
+               "method": self.method, "parts": [part.to_dict() for part in self.parts],
+               "totals": totals, "hierarchy": hierarchy}
+        if self.levels:  # each level's parts by their split node (the tree has the points)
+            out["levels"] = [[_level_dict(part, self.tree) for part in level]
+                             for level in self.levels]
         if with_points:
             out["points"] = np.asarray(self.points).tolist()
         return out
@@ -225,8 +257,11 @@ class Decomposition:
         if len(points) != data["num_points"]:
             raise ValueError(f"the decomposition was of {data['num_points']} points, "
                              f"{len(points)} were given")
-        return cls(points, tuple(Part.from_dict(p) for p in data["parts"]),
-                   _tree_from_dict(data["hierarchy"], len(points)), float(data["seconds"]))
+        tree = _tree_from_dict(data["hierarchy"], len(points))
+        levels = tuple(tuple(Part.from_dict(p, tree.nodes[p["node"]].indices) for p in level)
+                       for level in data.get("levels", ()))
+        return cls(points, tuple(Part.from_dict(p) for p in data["parts"]), tree,
+                   float(data["seconds"]), levels, data.get("method", "thesis"))
 
     @classmethod
     def load(cls, directory) -> Decomposition:
@@ -307,17 +342,33 @@ def load_source(source, *, num_points: int = 20000, seed: int = 0) -> np.ndarray
     return as_cloud(source, num_points=num_points, seed=seed, with_normals=False)[0]
 
 
-def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
+#: The methods of ``decompose``.
+METHODS = ("thesis", "measured")
+
+
+def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
+              gain: float = 0.96, min_points: int | None = None,
               shapes=SHAPES, num_points: int = 20000, threshold_fraction=THRESHOLD_FRACTION,
               key=0, reassign: int = 3, progress: bool = False) -> Decomposition:
-    """Decompose an object into primitives (the PSDA).
+    """Decompose an object into primitives.
+
+    Both methods first fit every primitive to the whole object (``_whole_object``): if
+    one explains it two-sided within the noise of a fit (``measure.EXPLAINED``), it is
+    the one part. Otherwise ``method="thesis"`` runs the PSDA (BoxDecomposition, a fit
+    of every primitive to every leaf, the lowest mean distance wins, reassignment);
+    ``method="measured"`` splits greedily where the two-sided score falls most
+    (``jaxfit.decomposition.measured``) and keeps every part count of the run
+    (``Decomposition.levels``, ``with_parts``).
 
     Parameters
     ----------
     source : (N, 3) points, or any cloud ``jaxfit.as_cloud`` reads: a trimesh
         ``PointCloud``, ``Trimesh`` or ``Scene`` (a glTF's), an Open3D ``PointCloud`` or
         ``TriangleMesh``, a path to a mesh / point file / Open Inventor ``.iv`` model.
-    gain : BoxDecomposition's split threshold (children's volume / parent's volume must
+    method : "thesis" or "measured" (see above).
+    max_parts : at most this many parts (a positive integer; default: the thesis's
+        BoxDecomposition decides, the measured method stops at ``measured.MAX_PARTS``).
+    gain : (thesis) BoxDecomposition's split threshold (children's volume / parent's volume must
         fall below it); nearer 1 splits more.
     min_points : smallest part; default 2 % of the points (at least 30).
     shapes : primitives to try on every part.
@@ -326,13 +377,19 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
         box's diagonal.
     key : int seed or JAX PRNG key, for the sampling of a mesh and of large parts
         (``_checks.numpy_seed``) and for the fits.
-    reassign : rounds (at most) of giving every point to the nearest part's primitive
+    reassign : (thesis) rounds (at most) of giving every point to the nearest part's primitive
         (its best fitted one, cylinders and cones grown along their surface) and fitting
         the parts that changed again, so parts follow the primitives rather than the box
         cuts (see the module docstring); 0 keeps the leaves as they are.
     progress : print the stages to stderr.
     """
     started = time.perf_counter()
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if max_parts is not None and (isinstance(max_parts, bool)
+                                  or not isinstance(max_parts, numbers.Integral)
+                                  or max_parts < 1):
+        raise ValueError(f"max_parts must be a positive integer, got {max_parts!r}")
     if isinstance(shapes, str | type):  # one shape, not its letters
         shapes = [shapes]
     classes = [_checks.model_class(s) for s in shapes]
@@ -347,9 +404,30 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
     min_points = _checks.positive(min_points, "min_points", integer=True)
     say = _say if progress else (lambda *_: None)
 
+    scorer = Scorer(points, seed)
+    root = mvbb(points)
+    whole = _whole_object(points, classes, root, threshold_fraction, key, seed, scorer)
+    single = BoxTree((BoxNode(root, np.arange(len(points))),), float(gain), int(min_points),
+                     "root")
+    if _explains(whole.candidates[whole.winner], _threshold(root, threshold_fraction),
+                 scorer.spacing) or max_parts == 1:
+        say(f"one {whole.winner} explains the object ({time.perf_counter() - started:.2f} s)")
+        return Decomposition(points, (whole,), single, time.perf_counter() - started,
+                             (whole,) if method == "measured" else (), method)
+    if method == "measured":
+        from .measured import split_greedily
+
+        parts, tree, levels = split_greedily(
+            points, whole, classes=classes, scorer=scorer, min_points=min_points,
+            max_parts=max_parts, threshold_fraction=threshold_fraction, key=key, seed=seed,
+            say=say, started=started)
+        return Decomposition(points, parts, tree, time.perf_counter() - started, levels,
+                             method)
+
     # The thesis's split rule, with volumes measured against the root box: measured
     # against the parent, every curved patch keeps splitting (see jaxfit.boxdecomp).
-    tree = decompose_boxes(points, gain=gain, min_points=min_points, reference="root")
+    tree = decompose_boxes(points, gain=gain, min_points=min_points, reference="root",
+                           max_leaves=max_parts, root=root)
     groups = [tree.nodes[i].indices for i in tree.leaves]
     say(f"box decomposition: {len(groups)} parts ({time.perf_counter() - started:.2f} s)")
     fit = functools.partial(_fit_parts, points, classes=classes, bounds=tree.nodes[0].box,
@@ -374,6 +452,62 @@ def decompose(source, *, gain: float = 0.96, min_points: int | None = None,
             break
         parts = candidate
     return Decomposition(points, tuple(parts), tree, time.perf_counter() - started)
+
+
+def _candidate_dict(c: Candidate) -> dict:
+    out = {"model": c.model.to_dict(), "mean_distance": c.mean_distance,
+           "overshoot": c.overshoot}
+    if np.isfinite(c.surface_distance):
+        out["surface_distance"] = c.surface_distance
+    return out
+
+
+def _level_dict(part: Part, tree: BoxTree) -> dict:
+    """A level's part as ``Part.to_dict`` gives it, its indices replaced by the id of
+    the split node that holds them (``tree``)."""
+    node = next(i for i, n in enumerate(tree.nodes)
+                if n.indices.size == part.indices.size and np.array_equal(n.indices,
+                                                                          part.indices))
+    data = part.to_dict()
+    del data["indices"]
+    return dict(data, node=node)
+
+
+def _whole_object(points, classes, box: Box, threshold_fraction, key, seed,
+                  scorer: Scorer) -> Part:
+    """The object as one part: every primitive fitted to it (``MAX_FIT_POINTS`` of its
+    points, one ``fit_batch`` per primitive) and its MVBB, each scored two-sided
+    (``Scorer.score`` on all points); the lowest ``two_sided`` wins."""
+    threshold = _threshold(box, threshold_fraction)
+    rng = np.random.default_rng(seed)  # the thesis's draw for a part of all the points
+    sample = points if len(points) <= MAX_FIT_POINTS else \
+        points[rng.choice(len(points), MAX_FIT_POINTS, False)]
+    found = {"mvbb": Candidate(box, *_scores(scorer, box, points, box))}
+    for cls in classes:
+        result = fit_batch([sample], cls, thresholds=[threshold], key=key,
+                           skip_failures=True)[0]
+        if result is not None:
+            found[cls.name] = Candidate(result.model, *_scores(scorer, result.model, points, box))
+    winner = min(found, key=lambda name: found[name].two_sided)
+    model = found[winner].model
+    return Part(np.arange(len(points)), box, model.name, winner, model,
+                found[winner].mean_distance, found)
+
+
+def _scores(scorer: Scorer, model: Model, points, bounds: Box) -> tuple[float, float, float]:
+    """(mean distance, overshoot out of ``bounds``, surface distance) of a candidate."""
+    mean, surface = scorer.score(model, points)
+    reach = _overshoot(model, bounds) if np.isfinite(mean) else float("inf")
+    return mean, reach, surface
+
+
+def _explains(candidate: Candidate, threshold: float, spacing: float) -> bool:
+    """Whether one primitive explains the object within the noise of a fit: its points'
+    mean distance, and its surface's beyond the cloud's own spacing (a perfect fit's
+    surface samples lie about that far from the nearest point), are both at most
+    ``EXPLAINED`` thresholds."""
+    return (candidate.mean_distance <= EXPLAINED * threshold
+            and candidate.surface_distance - spacing <= EXPLAINED * threshold)
 
 
 def _tree_from_dict(data: dict, num_points: int) -> BoxTree:
