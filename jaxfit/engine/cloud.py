@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import numpy as np
@@ -31,7 +32,8 @@ NORMAL_NEIGHBOURS = 16
 def default_threshold(sides) -> float:
     """The default inlier threshold of a cloud whose bounding box has sides (3,):
     ``DEFAULT_THRESHOLD_FRACTION`` of its diagonal."""
-    return DEFAULT_THRESHOLD_FRACTION * float(np.linalg.norm(sides))
+    sides = np.asarray(sides, np.float64).ravel()  # (np.linalg.norm's own sum, without
+    return DEFAULT_THRESHOLD_FRACTION * math.sqrt(sides.dot(sides))  # its ~6 us of checks)
 
 
 def bucket_size(n: int) -> int:
@@ -121,6 +123,54 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
         wanted = np.arange(len(cloud)) if pool is None else pool
     return Cloud(cloud, normals, pool, center, scale, threshold, bounds, wanted)
+
+
+def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[Cloud] | None:
+    """``prepare`` of every cloud of a call in a few NumPy passes over their concatenated
+    columns, for clouds that need no normals: (N_i, 3) real ndarrays, ``thresholds`` one
+    per cloud (None: the default). The same Clouds, bit for bit (the same elementwise
+    operations; min, max and their reduceat are exact), with ``unit`` already made. None
+    when any cloud would fail a check: then ``prepare``, cloud by cloud, raises (or
+    skips) with the message naming the first bad one.
+
+    Why: ``prepare`` is ~40 us of NumPy calls per cloud, 15 % of ``fit_batch`` on 500-point
+    clouds (docs/engine.md, "Host path (this round)")."""
+    if not all(isinstance(c, np.ndarray) and c.ndim == 2 and c.shape[1] == 3
+               and c.dtype.kind in "fiu" and len(c) >= cls.sample_size for c in clouds):
+        return None
+    sizes = np.fromiter((len(c) for c in clouds), np.int64, len(clouds))
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    columns = [np.concatenate([c[:, i] for c in clouds], dtype=np.float64, casting="unsafe")
+               for i in range(3)]
+    # A NaN spreads to its cloud's min and max, an inf is one of them.
+    lo = np.stack([np.minimum.reduceat(col, starts) for col in columns], axis=1)  # (C, 3)
+    hi = np.stack([np.maximum.reduceat(col, starts) for col in columns], axis=1)
+    limit = _checks.MAX_COORDINATE
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and -limit <= lo.min()
+            and hi.max() <= limit):
+        return None
+    extent = (hi - lo).max(axis=1)
+    center = 0.5 * (lo + hi)
+    offset = [col - np.repeat(center[:, i], sizes) for i, col in enumerate(columns)]
+    scale = np.maximum.reduceat(np.sqrt(offset[0] ** 2 + offset[1] ** 2 + offset[2] ** 2),
+                                starts)  # (``row_norms``, column by column)
+    if np.any((extent > 0) & (extent < _checks.MIN_EXTENT)) or not np.all(scale > 0):
+        return None
+    try:
+        limits = [default_threshold(hi[i] - lo[i]) if t is None
+                  else _checks.positive(t, "threshold") for i, t in enumerate(thresholds)]
+    except ValueError:
+        return None
+    every = np.repeat(scale, sizes)
+    unit = np.stack([o / every for o in offset], axis=1)  # (N, 3)
+    out = []
+    for i, (c, start, n) in enumerate(zip(clouds, starts.tolist(), sizes.tolist(),
+                                          strict=True)):
+        cloud = Cloud(np.array(c, np.float64), None, None, center[i], float(scale[i]),
+                      limits[i], bounds)
+        cloud.__dict__["unit"] = unit[start:start + n]  # (the cached property, made)
+        out.append(cloud)
+    return out
 
 
 def estimate_normals(clouds: list[Cloud]):

@@ -10,7 +10,7 @@ import numpy as np
 from .. import _checks
 from ..io.inputs import converted_batch
 from ..shapes import Model
-from .cloud import Cloud, estimate_normals, prepare
+from .cloud import Cloud, estimate_normals, prepare, prepare_many
 from .loop import search
 from .options import Bounds, FitOptions
 from .refine import FINAL_MIN_POINTS, final_refit
@@ -92,17 +92,21 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
         return type(err)(f"cloud {i}: {err}") if len(clouds) > 1 else err
 
     results: list[FitResult | None] = [None] * len(clouds)
-    prepared, which = [], []  # the clouds that go to the loop, and their places
-    for i, points in enumerate(clouds):
-        try:
-            prepared.append(prepare(points, cls, None if normals is None else normals[i],
-                                    thresholds[i], uses_normals, key, i, checked.bounds))
-            which.append(i)
-        except _checks.FitError as err:  # well-formed, but no shape in it (coincident)
-            if not skip_failures:
+    prepared, which = None, list(range(len(clouds)))  # the clouds of the loop, their places
+    if normals is None and not (uses_normals or checked.bounds.gated):
+        prepared = prepare_many(clouds, cls, thresholds, checked.bounds)
+    if prepared is None:  # (cloud by cloud: the first bad one named, coincident ones skipped)
+        prepared, which = [], []
+        for i, points in enumerate(clouds):
+            try:
+                prepared.append(prepare(points, cls, None if normals is None else normals[i],
+                                        thresholds[i], uses_normals, key, i, checked.bounds))
+                which.append(i)
+            except _checks.FitError as err:  # well-formed, but no shape in it (coincident)
+                if not skip_failures:
+                    raise named(i, err) from None
+            except ValueError as err:
                 raise named(i, err) from None
-        except ValueError as err:
-            raise named(i, err) from None
     if not prepared:
         return results
     estimate_normals(prepared)
@@ -123,7 +127,7 @@ def result(cls: type[Model], cloud: Cloud, theta, drawn, status,
            options: FitOptions | None = None) -> FitResult:
     """The FitResult of hypothesis theta (P,) (normalised frame) on ``cloud``; raises
     ``FitError`` when no hypothesis was valid or the best has no inliers."""
-    if not np.all(np.isfinite(theta)):
+    if not np.isfinite(theta).all():
         bounded_by = [f"{name}={getattr(options, name)!r}" for name in
                       ("radius_range", "axis_prior") if getattr(options, name, None) is not None]
         why = (f"none within the bounds {', '.join(bounded_by)}, or the points are "
@@ -135,15 +139,17 @@ def result(cls: type[Model], cloud: Cloud, theta, drawn, status,
     unit_threshold = cloud.threshold / cloud.scale
     theta = np.asarray(theta, np.float64)
     agree = agreeing(cls, theta, cloud)
-    model = bounded(cls, theta, cloud.unit, unit_threshold, agree)
+    model = bounded(cls, theta, cloud.unit, unit_threshold, True if agree is None else agree)
     model = model.rescaled(cloud.scale, cloud.center)
     # Final inliers are judged against the bounded primitive the user gets back.
     distance = model.distance(cloud.points)
-    inliers = (distance < cloud.threshold) & agree
-    distance = np.where(agree, distance, np.inf)
-    cost = float(np.sum(np.minimum(distance**2, cloud.threshold**2)))
-    return FitResult(model, inliers, int(inliers.sum()), cost, int(drawn), status,
-                     cloud.threshold)
+    inliers = distance < cloud.threshold
+    if agree is not None:  # (without a gate, ~15 us of all-true masks a cloud)
+        inliers &= agree
+        distance = np.where(agree, distance, np.inf)
+    cost = float(np.minimum(distance**2, cloud.threshold**2).sum())
+    return FitResult(model, inliers, int(np.count_nonzero(inliers)), cost, int(drawn),
+                     status, cloud.threshold)
 
 
 def refitted(cls: type[Model], clouds: list[Cloud], thetas, options: FitOptions):
@@ -163,9 +169,10 @@ def refitted(cls: type[Model], clouds: list[Cloud], thetas, options: FitOptions)
 
 def agreeing(cls: type[Model], theta, cloud: Cloud):
     """(N,) whether each point passes the normal gate of hypothesis theta (normalised
-    frame): the kernel's measure, in float64 NumPy (``Model.residual_slope``)."""
+    frame): the kernel's measure, in float64 NumPy (``Model.residual_slope``); None
+    without a gate (every point passes)."""
     if not cloud.gated:
-        return np.ones(len(cloud.points), bool)
+        return None
     _, slope = cls.residual_slope(theta, tuple(cloud.unit.T), tuple(cloud.normals.T), np)
     return np.abs(slope) >= cloud.bounds.normal_cos
 
@@ -174,7 +181,9 @@ def bounded(cls: type[Model], theta, unit, unit_threshold, agree=True):
     """The bounded model from a hypothesis, in the normalised frame (float64), bounded by
     the points near its surface (and passing the normal gate, ``agree`` (N,))."""
     residual = cls.theta_residual(theta, (unit[:, 0], unit[:, 1], unit[:, 2]), np)
-    inliers = (np.abs(residual) < unit_threshold) & agree
+    inliers = np.abs(residual) < unit_threshold
+    if agree is not True:
+        inliers &= agree
     if not inliers.any():
         raise _checks.FitError(f"the best {cls.name} hypothesis has no inliers")
     return cls.from_theta(theta, unit, inliers, unit_threshold)

@@ -11,6 +11,14 @@ import dataclasses
 import enum
 import math
 
+import numpy as np
+
+#: ``AdaptiveStopping.status_many`` asks ``status`` for a cloud whose quotient T lies
+#: within this relative distance of an integer (far above NumPy's few-ulp differences).
+NEAR_INTEGER = 1e-9
+#: Clouds from which ``AdaptiveStopping.status_many`` uses array code.
+ARRAY_MIN = 32
+
 
 class Status(str, enum.Enum):
     """Why the hypothesis loop stopped."""
@@ -46,6 +54,16 @@ class StoppingRule:
                sample_size: int, options) -> Status | None:  # pragma: no cover
         raise NotImplementedError
 
+    def status_many(self, inliers, points, drawn, since_best, sample_size: int,
+                    options) -> list:
+        """``status`` of several clouds at once: inliers, points, drawn, since_best (C,)
+        -> C Status or None. This default asks ``status`` cloud by cloud; a rule may
+        override it with array code (the host loop asks every searching cloud after
+        every batch: a Python call each was ~4 us, 1000 clouds ~4 ms a batch)."""
+        return [self.status(*values, sample_size, options)
+                for values in zip(inliers.tolist(), points.tolist(), drawn.tolist(),
+                                  since_best.tolist(), strict=True)]
+
 
 @dataclasses.dataclass(frozen=True)
 class AdaptiveStopping(StoppingRule):
@@ -61,3 +79,29 @@ class AdaptiveStopping(StoppingRule):
         if since_best >= options.max_stall:
             return Status.STALLED
         return None
+
+    def status_many(self, inliers, points, drawn, since_best, sample_size, options):
+        """``status`` for arrays (C,), with the same answers: NumPy's SIMD ``log1p`` and
+        ``power`` differ from the math module's by a few ulp, which moves T only where
+        the quotient lies within that of an integer; those clouds ask ``status``. Fewer
+        than ``ARRAY_MIN`` clouds ask ``status`` one by one (~4 us each, where the array
+        code costs ~40 us whatever the count)."""
+        if len(inliers) < ARRAY_MIN:
+            return super().status_many(inliers, points, drawn, since_best, sample_size,
+                                       options)
+        ratio = np.asarray(inliers, np.float64) / np.asarray(points, np.float64)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            all_inlier = ratio**sample_size
+            quotient = math.log1p(-options.confidence) / np.log1p(-all_inlier)
+            near = (ratio > 0) & (ratio < 1) & (all_inlier > 0) & ~(
+                np.abs(quotient - np.rint(quotient)) > NEAR_INTEGER * np.abs(quotient))
+        needed = np.where(ratio >= 1, 1.0, np.where((ratio <= 0) | (all_inlier <= 0), np.inf,
+                                                    np.ceil(quotient)))
+        needed = np.maximum(needed, options.min_hypotheses)
+        stops = np.where(drawn >= needed, 1, np.where(since_best >= options.max_stall, 2, 0))
+        out = [None, Status.CONVERGED, Status.STALLED]
+        answers = [out[s] for s in stops.tolist()]
+        for i in np.flatnonzero(near).tolist():
+            answers[i] = self.status(float(inliers[i]), int(points[i]), int(drawn[i]),
+                                     int(since_best[i]), sample_size, options)
+        return answers

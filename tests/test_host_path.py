@@ -1,0 +1,132 @@
+"""The host path's array versions (issue 18, items 2 and 5) give exactly what their
+cloud-by-cloud twins give: ``prepare_many`` the Clouds of ``prepare``, ``stacked`` and
+``unit_bounds`` the padded per-slot arrays, ``AdaptiveStopping.status_many`` the answers
+of ``status``; and where a cloud is bad, ``fit_batch`` still names it. No kernel runs
+here but one small batch (the suite's 1024 bucket)."""
+
+import math
+
+import numpy as np
+import pytest
+
+import jaxfit
+from jaxfit.engine import loop
+from jaxfit.engine.cloud import MIN_BUCKET, default_threshold, padded, prepare, prepare_many
+from jaxfit.engine.options import Bounds, FitOptions
+from jaxfit.engine.stopping import AdaptiveStopping, required_hypotheses
+from jaxfit.evaluation.synthetic import demo_cloud
+from jaxfit.shapes import Cylinder, Sphere
+
+
+def _clouds(rng, sizes, dtype=np.float64):
+    return [(rng.normal(size=(n, 3)) * rng.uniform(0.1, 50) + rng.uniform(-1e3, 1e3, 3))
+            .astype(dtype) for n in sizes]
+
+
+def _same(a, b):
+    return (np.array_equal(a.points, b.points) and np.array_equal(a.center, b.center)
+            and a.scale == b.scale and a.threshold == b.threshold
+            and np.array_equal(a.unit, b.unit) and a.bounds is b.bounds
+            and a.normals is None and a.pool is None and a.wanted is None)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int32])
+def test_prepare_many_is_prepare_bit_for_bit(rng, dtype):
+    bounds = FitOptions(radius_range=(0.5, 90.0)).check(Sphere).bounds
+    clouds = _clouds(rng, [4, 500, 37, 2048, 3000, 999], dtype)
+    thresholds = [None, 0.02, None, 1, None, np.float32(0.5)]
+    many = prepare_many(clouds, Sphere, thresholds, bounds)
+    one = [prepare(c, Sphere, None, t, False, 0, i, bounds)
+           for i, (c, t) in enumerate(zip(clouds, thresholds, strict=True))]
+    assert len(many) == len(one)
+    assert all(_same(a, b) for a, b in zip(many, one, strict=True))
+
+
+def test_prepare_many_leaves_bad_clouds_to_prepare(rng):
+    bounds = FitOptions().check(Sphere).bounds
+    good = _clouds(rng, [50, 60])
+    nan, inf, big = good[0].copy(), good[0].copy(), good[0].copy()
+    nan[3, 1], inf[7, 2], big[0, 0] = np.nan, -np.inf, 1e200
+    flat = np.zeros((20, 3))  # coincident points
+    tiny = good[0] * 1e-150  # spans less than MIN_EXTENT
+    for bad in (nan, inf, big, flat, tiny, good[0][:3], good[0].astype(complex),
+                good[0].T.copy(), good[0].tolist()):
+        assert prepare_many([good[1], bad], Sphere, [None, None], bounds) is None
+    assert prepare_many(good, Sphere, [None, -1.0], bounds) is None  # a bad threshold
+    assert prepare_many(good, Sphere, [None, "x"], bounds) is None
+
+
+def test_fit_batch_still_names_the_bad_cloud(rng):
+    clouds = _clouds(rng, [200, 200, 200])
+    clouds[1][5, 0] = np.nan
+    with pytest.raises(ValueError, match="cloud 1: points contain 1 row"):
+        jaxfit.fit_batch(clouds, "sphere")
+    clouds[1] = np.zeros((30, 3))  # coincident: skipped with skip_failures, else named
+    with pytest.raises(jaxfit.FitError, match="cloud 1: all points coincide"):
+        jaxfit.fit_batch(clouds, "sphere")
+    with pytest.raises(ValueError, match="cloud 2: threshold must be a positive"):
+        jaxfit.fit_batch(_clouds(rng, [200] * 3), "sphere", thresholds=[0.1, 0.1, 0.0])
+
+
+def test_fit_batch_skips_a_coincident_cloud_as_before(rng):
+    points, truth, _ = demo_cloud("sphere", count=500, seed=3)
+    results = jaxfit.fit_batch([points, np.ones((30, 3)), points], "sphere",
+                               skip_failures=True)
+    assert results[1] is None
+    for r in (results[0], results[2]):
+        assert np.linalg.norm(r.model.center - truth.center) < 0.02 * truth.radius
+
+
+def test_default_threshold_is_the_norm_of_the_sides(rng):
+    sides = rng.uniform(0, 10, (2000, 3)) * 10.0 ** rng.integers(-60, 60, (2000, 1))
+    assert all(default_threshold(s) == 0.005 * float(np.linalg.norm(s)) for s in sides)
+
+
+def test_stacked_and_unit_bounds_are_the_padded_stack(rng):
+    bounds = FitOptions(axis_prior=((0, 0, 1), 30)).check(Cylinder).bounds
+    clouds = prepare_many(_clouds(rng, [300, 1000, 20]), Cylinder, [None] * 3, bounds)
+    order = [0, 1, 2, 0]  # a padding slot repeats cloud 0
+    rows = [clouds[i].unit for i in order]
+    expected = np.stack([padded(r, np.float32, MIN_BUCKET) for r in rows])
+    got = loop.stacked([c.unit for c in clouds], len(order), np.float32, MIN_BUCKET)
+    assert got.dtype == np.float32 and np.array_equal(got, expected)
+    stack = Bounds.stack([clouds[i].unit_bounds() for i in order], np.float32)
+    assert np.array_equal(loop.unit_bounds([clouds[i] for i in order], np.float32).values,
+                          stack.values)
+    own = prepare(clouds[2].points, Cylinder, None, None, False, 0, 2, Bounds.make(0.0, 5.0))
+    mixed = [clouds[0], own]  # clouds of other bounds: each its own
+    assert np.array_equal(loop.unit_bounds(mixed, np.float64).values,
+                          Bounds.stack([c.unit_bounds() for c in mixed], np.float64).values)
+
+
+def test_status_many_answers_as_status(rng):
+    rule = AdaptiveStopping()
+    for confidence, min_hypotheses, sample_size in ((0.99, 0, 4), (0.999, 256, 3),
+                                                    (0.9, 8192, 2), (0.5, 0, 6)):
+        options = FitOptions(confidence=confidence, min_hypotheses=min_hypotheses,
+                             max_stall=3000).check(Sphere)
+        count = 20000
+        points = rng.integers(5, 5000, count)
+        inliers = np.minimum(points, rng.integers(0, 5000, count)).astype(np.float64)
+        inliers[:50], inliers[50:100] = 0, points[50:100]  # none, and all, inliers
+        drawn = rng.integers(1, 200, count) * 256
+        # T itself, and one either side of it, as drawn: the rule's edge
+        edge = np.asarray([min(required_hypotheses(i / p, sample_size, confidence), 1e9)
+                           for i, p in zip(inliers[100:3000], points[100:3000], strict=True)])
+        drawn[100:3000] = np.maximum(edge, 1).astype(np.int64) + rng.integers(-1, 2, 2900)
+        since = np.minimum(drawn, rng.integers(0, 6000, count))
+        many = rule.status_many(inliers, points, drawn, since, sample_size, options)
+        one = [rule.status(*v, sample_size, options)
+               for v in zip(inliers, points, drawn, since, strict=True)]
+        assert many == one
+
+
+def test_status_many_default_asks_status():
+    class Every512(AdaptiveStopping):
+        def status(self, inliers, points, drawn, since_best, sample_size, options):
+            return jaxfit.Status.CONVERGED if drawn >= 512 and math.isfinite(inliers) else None
+
+    drawn = np.array([256, 512, 768])
+    answers = super(AdaptiveStopping, Every512()).status_many(
+        np.ones(3), np.full(3, 10), drawn, drawn, 4, None)
+    assert answers == [None, jaxfit.Status.CONVERGED, jaxfit.Status.CONVERGED]
