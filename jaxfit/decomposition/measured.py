@@ -29,6 +29,7 @@ surface side of the score does their work.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -37,7 +38,7 @@ from ..engine import fit_batch
 from ..shapes import Box
 from .boxdecomp import BoxNode, BoxTree, _principal_axes, mvbb
 from .measure import Scorer
-from .psda import MAX_FIT_POINTS, Candidate, Part, _threshold
+from .psda import MAX_FIT_POINTS, Candidate, Part, _grown, _threshold
 
 __all__ = ["MAX_PARTS", "SPLIT_MARGIN", "FRACTIONS", "split_greedily", "cuts", "necks"]
 
@@ -59,6 +60,8 @@ NECKS_PER_AXIS = 2
 #: the cuts; the parts that remain are fitted again in full.
 SEARCH_POINTS = 1024
 SEARCH_HYPOTHESES = 1024
+#: Neighbours of a point (itself included) that make two parts adjacent when they differ.
+ADJACENT = 6
 #: Axes closer than this (|cos|) to one already tried are not tried again.
 SAME_AXIS = 0.97
 
@@ -101,24 +104,42 @@ def split_greedily(points, whole: Part, *, classes, scorer: Scorer, min_points: 
             break
         node = nodes[best]
         first = len(nodes)
-        for half, (name, candidate) in zip(node.split[0], node.split[1], strict=True):
-            nodes.append(_Node(half, name, candidate, best, node.depth + 1))
+        for half, (name, candidate) in zip(_reassigned(points, node, scorer), node.split[1],
+                                           strict=True):
+            mean, _, surface = _two(scorer, candidate.model, points[half])
+            nodes.append(_Node(half, name, dataclasses.replace(candidate, mean_distance=mean),
+                               best, node.depth + 1))
         node.children = (first, first + 1)
         alive = [i for i in alive if i != best] + [first, first + 1]
         history.append(sorted(alive))
     tree = BoxTree(tuple(BoxNode(mvbb(points[n.indices]), n.indices, n.children, n.parent,
                                  n.depth) for n in nodes), 0.0, int(min_points),
                    "measured")
-    final = _refit(points, [tree.nodes[i] for i in history[-1]], classes=classes,
-                   scorer=scorer, threshold_fraction=threshold_fraction, key=key, seed=seed)
+    fit = functools.partial(_fit_groups, points, classes=classes, scorer=scorer,
+                            threshold_fraction=threshold_fraction, key=key, seed=seed)
+    final = fit([tree.nodes[i].indices for i in history[-1]],
+                [tree.nodes[i].box for i in history[-1]])
     by_node = dict(zip(history[-1], final, strict=True))
-    levels = []
-    for level in history[:-1]:
-        levels.append(tuple(by_node.get(i) or _as_part(tree.nodes[i], nodes[i])
-                            for i in level))
+    final = _merged(points, final, scorer, fit)
+    final = _reassigned_all(points, final, fit, threshold_fraction, min_points)
+    levels = [tuple(by_node.get(i) or _as_part(tree.nodes[i], nodes[i]) for i in level)
+              for level in history[:len(final) - 1]]
     levels.append(tuple(final))
     say(f"measured: {len(final)} parts ({time.perf_counter() - started:.2f} s)")
     return tuple(final), tree, tuple(levels)
+
+
+def _reassigned(points, node: _Node, scorer: Scorer) -> tuple[np.ndarray, np.ndarray]:
+    """The split node's points given each to the nearer of its halves' primitives, so a
+    cut that missed the junction leaves no sliver of one half in the other; the halves
+    of the cut stand where a side would keep fewer than a tenth of its points."""
+    a, b = (candidate.model for _, candidate in node.split[1])
+    idx = node.indices
+    first = a.distance(points[idx]) <= b.distance(points[idx])
+    cut = node.split[0]
+    if min(first.sum(), (~first).sum()) < 0.1 * min(cut[0].size, cut[1].size):
+        return cut
+    return idx[first], idx[~first]
 
 
 def _checks_seed(key) -> int:
@@ -251,18 +272,90 @@ def necks(centred, axis, lo: float, hi: float) -> list[float]:
     return [position for _, position in sorted(found)[:NECKS_PER_AXIS]]
 
 
-def _refit(points, nodes: list[BoxNode], *, classes, scorer: Scorer, threshold_fraction,
-           key, seed) -> list[Part]:
-    """The last level's parts fitted as the thesis fits its leaves (every primitive, one
+def _merged(points, parts: list[Part], scorer: Scorer, fit) -> list[Part]:
+    """Adjacent parts (some point's ``ADJACENT`` nearest neighbours lie in both) merged,
+    pair by pair, while one primitive fits a pair's union about as well as the two
+    (the union's points-weighted score at most ``SPLIT_MARGIN`` of the diagonal above
+    theirs: the split between them would not have been made). A top-down cut can fall
+    across a part (the lamp's post, cut by the first plane between base and shade), and
+    its two pieces are each explained again; this puts them back together. ``fit``
+    fits index groups (``_fit_groups``)."""
+    parts = list(parts)
+    total = len(points)
+    near = scorer.tree.query(points[::-(-total // 4096)], k=ADJACENT)[1]
+    tried: dict[bytes, Part] = {}
+    while len(parts) > 1:
+        labels = np.full(total, -1)
+        for k, part in enumerate(parts):
+            labels[part.indices] = k
+        linked = labels[near]
+        pairs = sorted({(int(a), int(b)) for a, b in
+                        zip(linked[:, :1].repeat(ADJACENT - 1, 1).ravel(),
+                            linked[:, 1:].ravel(), strict=True) if a < b})
+        unions = [np.union1d(parts[a].indices, parts[b].indices) for a, b in pairs]
+        fresh = [u for u in unions if u.tobytes() not in tried]
+        if fresh:
+            tried.update(zip((u.tobytes() for u in fresh), fit(fresh), strict=True))
+        best, excess = None, np.inf
+        for (a, b), union in zip(pairs, unions, strict=True):
+            whole = tried[union.tobytes()]
+            cost = (union.size * _score(whole) - parts[a].indices.size * _score(parts[a])
+                    - parts[b].indices.size * _score(parts[b])) / total / scorer.diagonal
+            if cost < excess:
+                best, excess = (a, b, whole), cost
+        if best is None or excess > SPLIT_MARGIN:
+            return parts
+        a, b, whole = best
+        parts = [p for k, p in enumerate(parts) if k not in (a, b)] + [whole]
+    return parts
+
+
+def _reassigned_all(points, parts: list[Part], fit, threshold_fraction,
+                    min_points: int) -> list[Part]:
+    """One round of the thesis's reassignment on the last level: every point to the part
+    whose primitive (cylinders and cones first grown along their surface, ``_grown``)
+    is nearest, the parts that changed fitted again; kept if the points-weighted
+    two-sided score falls and every part keeps ``min_points`` // 2 points. The split
+    planes need not fall on the junctions; this moves them there and regrows a post
+    that a cut shortened."""
+    if len(parts) < 2:
+        return parts
+    models = [_grown(p.model, points, _threshold(p.box, threshold_fraction)) for p in parts]
+    owner = np.argmin(np.stack([m.distance(points) for m in models]), axis=0)
+    groups = [np.flatnonzero(owner == k) for k in range(len(parts))]
+    if min(g.size for g in groups) < max(1, min_points // 2):
+        return parts
+    changed = [k for k, (g, p) in enumerate(zip(groups, parts, strict=True))
+               if not np.array_equal(g, p.indices)]
+    if not changed:
+        return parts
+    fresh = dict(zip(changed, fit([groups[k] for k in changed]), strict=True))
+    candidate = [fresh.get(k, p) for k, p in enumerate(parts)]
+
+    def total(ps):
+        return sum(p.indices.size * _score(p) for p in ps)
+
+    return candidate if total(candidate) < total(parts) else parts
+
+
+def _score(part: Part) -> float:
+    return part.candidates[part.winner].two_sided
+
+
+def _fit_groups(points, groups, boxes=None, *, classes, scorer: Scorer, threshold_fraction,
+                key, seed) -> list[Part]:
+    """Parts for index groups, fitted as the thesis fits its leaves (every primitive, one
     ``fit_batch`` per primitive, ``MAX_FIT_POINTS`` points each), each candidate scored
-    two-sided on all the part's points; the node's MVBB competes; the lowest wins."""
+    two-sided on all the part's points; the group's MVBB (``boxes``, or computed)
+    competes; the lowest wins."""
     rng = np.random.default_rng(seed)
-    clouds = [points[n.indices] for n in nodes]
+    clouds = [points[g] for g in groups]
+    boxes = [mvbb(c) for c in clouds] if boxes is None else boxes
     samples = [c if len(c) <= MAX_FIT_POINTS else c[rng.choice(len(c), MAX_FIT_POINTS, False)]
                for c in clouds]
-    thresholds = [_threshold(n.box, threshold_fraction) for n in nodes]
-    found = [{"mvbb": Candidate(n.box, *_two(scorer, n.box, c))}
-             for n, c in zip(nodes, clouds, strict=True)]
+    thresholds = [_threshold(b, threshold_fraction) for b in boxes]
+    found = [{"mvbb": Candidate(b, *_two(scorer, b, c))}
+             for b, c in zip(boxes, clouds, strict=True)]
     for cls in classes:
         results = fit_batch(samples, cls, thresholds=thresholds, key=key, skip_failures=True)
         for candidates, result, cloud in zip(found, results, clouds, strict=True):
@@ -270,9 +363,9 @@ def _refit(points, nodes: list[BoxNode], *, classes, scorer: Scorer, threshold_f
                 candidates[cls.name] = Candidate(result.model,
                                                  *_two(scorer, result.model, cloud))
     parts = []
-    for node, candidates in zip(nodes, found, strict=True):
+    for group, box, candidates in zip(groups, boxes, found, strict=True):
         winner = min(candidates, key=lambda name: candidates[name].two_sided)
         model = candidates[winner].model
-        parts.append(Part(node.indices, node.box, model.name, winner, model,
+        parts.append(Part(group, box, model.name, winner, model,
                           candidates[winner].mean_distance, candidates))
     return parts

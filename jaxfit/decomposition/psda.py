@@ -146,12 +146,9 @@ class Part:
         }
 
     @classmethod
-    def from_dict(cls, data: dict, indices=None) -> Part:
+    def from_dict(cls, data: dict) -> Part:
         """Inverse of ``to_dict`` (its derived entries, pose, volume and centroid, are
-        recomputed from the model rather than read); ``indices`` stand in for a
-        dictionary written without them (a level's part: its split node's points)."""
-        if indices is not None:
-            data = dict(data, indices=indices)
+        recomputed from the model rather than read)."""
         if "indices" not in data:
             raise ValueError("a part's dictionary has no 'indices' (written before "
                              "jaxfit stored them?)")
@@ -179,8 +176,12 @@ class Decomposition:
 
     points : (N, 3) the cloud the decomposition worked on.
     parts : one Part per leaf of ``tree``, less those reassignment merged.
-    tree : the box hierarchy (which box split into which).
+    tree : the box hierarchy (which box split into which); for ``method="measured"`` the
+        split hierarchy (``reference`` "measured").
     seconds : wall time of decompose (boxes, fits and evaluation).
+    levels : (measured) the parts for every part count of the run: ``levels[k - 1]``
+        holds k parts, the last is ``parts`` (``with_parts``); empty for the thesis.
+    method : the ``decompose`` method that made it.
     """
 
     points: np.ndarray
@@ -192,8 +193,8 @@ class Decomposition:
 
     def with_parts(self, count: int) -> Decomposition:
         """The decomposition of ``count`` parts from the split hierarchy of one run
-        (``method="measured"``: ``levels[count - 1]``, the greedy's ``count``-part state,
-        each part's points a node of ``tree``); ValueError for a count the run did not
+        (``method="measured"``: ``levels[count - 1]``, the greedy's ``count``-part state;
+        the last level is ``parts``); ValueError for a count the run did not
         reach (1 .. ``len(levels)``)."""
         if isinstance(count, bool) or not isinstance(count, numbers.Integral):
             raise TypeError(f"count must be an integer, got {count!r}")
@@ -237,9 +238,8 @@ class Decomposition:
         out = {"num_points": int(len(self.points)), "seconds": self.seconds,
                "method": self.method, "parts": [part.to_dict() for part in self.parts],
                "totals": totals, "hierarchy": hierarchy}
-        if self.levels:  # each level's parts by their split node (the tree has the points)
-            out["levels"] = [[_level_dict(part, self.tree) for part in level]
-                             for level in self.levels]
+        if self.levels:
+            out["levels"] = [[part.to_dict() for part in level] for level in self.levels]
         if with_points:
             out["points"] = np.asarray(self.points).tolist()
         return out
@@ -258,7 +258,7 @@ class Decomposition:
             raise ValueError(f"the decomposition was of {data['num_points']} points, "
                              f"{len(points)} were given")
         tree = _tree_from_dict(data["hierarchy"], len(points))
-        levels = tuple(tuple(Part.from_dict(p, tree.nodes[p["node"]].indices) for p in level)
+        levels = tuple(tuple(Part.from_dict(p) for p in level)
                        for level in data.get("levels", ()))
         return cls(points, tuple(Part.from_dict(p) for p in data["parts"]), tree,
                    float(data["seconds"]), levels, data.get("method", "thesis"))
@@ -413,7 +413,7 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
                  scorer.spacing) or max_parts == 1:
         say(f"one {whole.winner} explains the object ({time.perf_counter() - started:.2f} s)")
         return Decomposition(points, (whole,), single, time.perf_counter() - started,
-                             (whole,) if method == "measured" else (), method)
+                             ((whole,),) if method == "measured" else (), method)
     if method == "measured":
         from .measured import split_greedily
 
@@ -460,17 +460,6 @@ def _candidate_dict(c: Candidate) -> dict:
     if np.isfinite(c.surface_distance):
         out["surface_distance"] = c.surface_distance
     return out
-
-
-def _level_dict(part: Part, tree: BoxTree) -> dict:
-    """A level's part as ``Part.to_dict`` gives it, its indices replaced by the id of
-    the split node that holds them (``tree``)."""
-    node = next(i for i, n in enumerate(tree.nodes)
-                if n.indices.size == part.indices.size and np.array_equal(n.indices,
-                                                                          part.indices))
-    data = part.to_dict()
-    del data["indices"]
-    return dict(data, node=node)
 
 
 def _whole_object(points, classes, box: Box, threshold_fraction, key, seed,
