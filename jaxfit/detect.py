@@ -237,6 +237,9 @@ def _indices(values, name: str) -> np.ndarray:
     return arr
 
 
+#: The pairs are first listed at this many times the radius a subsample's spacing
+#: gives (``RadiusGraph.of``); the subsample's median is within ~2 % of the cloud's.
+SPACING_MARGIN = 1.1
 #: Mean radius pairs per point above which ``RadiusGraph`` joins points through
 #: ``capped_pairs`` (bounded memory) instead of listing every pair (a dense cluster of k
 #: points has ~k^2 / 2: 20,000 near-copies of one point needed 9 GB).
@@ -254,13 +257,20 @@ def _spacing(tree, distinct: np.ndarray) -> float:
     m = len(distinct)
     if m < 2:
         return 0.0
-    rows = np.linspace(0, m - 1, min(m, 1024)).astype(np.int64)  # (evenly spread)
-    guess = np.median(tree.query(distinct[rows], k=2)[0][:, 1])
+    guess = _subsample_spacing(tree, distinct)
     if guess > 0:
         near = tree.query(distinct, k=2, distance_upper_bound=4.0 * guess)[0][:, 1]
         if np.count_nonzero(np.isfinite(near)) * 2 > m:
             return float(np.median(near))
     return float(np.median(tree.query(distinct, k=2)[0][:, 1]))
+
+
+def _subsample_spacing(tree, distinct: np.ndarray) -> float:
+    """The median nearest-neighbour distance of at most 1024 evenly spread points of
+    distinct (M, 3), M >= 2 (``tree`` over them): within a few per cent of the whole
+    cloud's."""
+    rows = np.linspace(0, len(distinct) - 1, min(len(distinct), 1024)).astype(np.int64)
+    return float(np.median(tree.query(distinct[rows], k=2)[0][:, 1]))
 
 
 def median_spacing(points: np.ndarray) -> float:
@@ -321,10 +331,10 @@ class RadiusGraph:
 
     distinct : (M, 3) distinct points; inverse : (N,) each point's row in it;
     pairs : (E, 2) rows within radius, first < second (at most ``PAIR_BUDGET`` a row on
-    average; a denser cloud lists ``capped_pairs``); adjacency : (M, M) symmetric CSR
-    matrix of the pairs (float32 ones: ``near`` multiplies by it); tree : the cKDTree
-    over distinct; spacing : median nearest-neighbour distance among distinct points;
-    radius : the radius.
+    average; a denser cloud lists ``capped_pairs``);
+    adjacency : (M, M) symmetric CSR matrix of the pairs (float32 ones: ``near``
+    multiplies by it); tree : the cKDTree over distinct; spacing : median
+    nearest-neighbour distance among distinct points; radius : the radius.
     """
 
     distinct: np.ndarray
@@ -340,27 +350,37 @@ class RadiusGraph:
            radius: float | None = None) -> RadiusGraph:
         """The graph of points (N, 3) at ``radius``, or at ``connect`` times their
         median spacing."""
-        from scipy.sparse import coo_matrix
         from scipy.spatial import cKDTree
 
         distinct, inverse = distinct_inverse(points)
         tree = cKDTree(distinct)
-        spacing = _spacing(tree, distinct)
-        radius = connect * spacing if radius is None else radius
         m = len(distinct)
-        if m < 2 or not radius > 0:
-            pairs = np.empty((0, 2), np.int64)
-        elif (pair_bound(distinct, radius) <= PAIR_BUDGET * m
-              # count_neighbors prunes whole node pairs within radius, so it counts a
-              # dense cluster's ~k^2 pairs without listing them (ordered pairs, each
-              # point with itself included).
-              or (tree.count_neighbors(tree, radius) - m) // 2 <= PAIR_BUDGET * m):
-            pairs = tree.query_pairs(radius, output_type="ndarray").astype(np.int64)
+        spacing = np.nan
+        if radius is None and m >= 2:
+            # The pairs at a radius a little above the one a subsample's spacing gives
+            # hold every point's nearest neighbour within it, hence the exact median
+            # spacing (a query of its own had cost as much as listing the pairs).
+            reach = connect * _subsample_spacing(tree, distinct) * SPACING_MARGIN
+            pairs = _pairs(tree, distinct, reach, SPACING_MARGIN ** 2)
+            length = np.sqrt(np.sum((distinct[pairs[:, 1]] - distinct[pairs[:, 0]]) ** 2,
+                                    axis=1))
+            nearest = np.full(m, np.inf)
+            np.minimum.at(nearest, pairs[:, 0], length)
+            np.minimum.at(nearest, pairs[:, 1], length)
+            known = np.count_nonzero(np.isfinite(nearest)) * 2 > m + 1  # (the middle two)
+            spacing = float(np.median(nearest)) if known else _spacing(tree, distinct)
+            radius = connect * spacing
+            if known and radius <= reach:
+                pairs = pairs[length <= radius]
+            else:
+                pairs = _pairs(tree, distinct, radius)
+        elif radius is None:
+            spacing, radius = 0.0, 0.0
+            pairs = _pairs(tree, distinct, radius)
         else:
-            pairs = capped_pairs(tree, distinct, radius)
-        ones = np.ones(2 * len(pairs), np.float32)
-        adjacency = coo_matrix((ones, (np.r_[pairs[:, 0], pairs[:, 1]],
-                                       np.r_[pairs[:, 1], pairs[:, 0]])), shape=(m, m)).tocsr()
+            pairs = _pairs(tree, distinct, radius)
+        adjacency = _csr(np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]], m,
+                         np.float32)
         return cls(distinct, inverse, pairs, adjacency, tree, spacing, float(radius))
 
     def components(self, members: np.ndarray) -> np.ndarray:
@@ -398,6 +418,31 @@ class RadiusGraph:
                             self.tree)[self.inverse]
 
 
+def _pairs(tree, points: np.ndarray, radius: float, allowance: float = 1.0) -> np.ndarray:
+    """(E, 2) int64 pairs of points (M, 3) (distinct; ``tree`` over them) within radius,
+    each once, first < second: all of them while they are at most ``allowance`` x
+    ``PAIR_BUDGET`` a point (``pair_bound``, else counted exactly), else
+    ``capped_pairs``."""
+    m = len(points)
+    if m < 2 or not radius > 0:
+        return np.empty((0, 2), np.int64)
+    budget = allowance * PAIR_BUDGET * m
+    # count_neighbors prunes whole node pairs within radius, so it counts a dense
+    # cluster's ~k^2 pairs without listing them (ordered pairs, each point with itself).
+    if (pair_bound(points, radius) <= budget
+            or (tree.count_neighbors(tree, radius) - m) // 2 <= budget):
+        return tree.query_pairs(radius, output_type="ndarray").astype(np.int64)
+    return capped_pairs(tree, points, radius)
+
+
+def _csr(rows, columns, size: int, dtype):
+    """The (size, size) CSR matrix of ones at (rows, columns) (E,), in any order (scipy's
+    counting conversion: no sort of the E entries)."""
+    from scipy.sparse import coo_matrix
+
+    return coo_matrix((np.ones(len(rows), dtype), (rows, columns)), shape=(size, size)).tocsr()
+
+
 def components(points: np.ndarray, radius: float) -> np.ndarray:
     """Labels (N,) of the connected components of points (N, 3) joined within radius,
     numbered by decreasing size (0 is the largest)."""
@@ -411,8 +456,11 @@ def compatible(model: Model, points, normals, threshold: float, cos_max: float) 
     near = np.flatnonzero(model.distance(points) < threshold)
     if near.size == 0:
         return near
-    along = model.surface_normal(points[near], 0.1 * threshold)
-    return near[np.abs(np.einsum("ij,ij->i", along, normals[near])) >= cos_max]
+    # The residual's slope along each unit normal is its cosine with the surface normal
+    # (one central difference, where ``Model.surface_normal`` takes three).
+    _, slope = type(model).residual_slope(model.theta(), tuple(points[near].T),
+                                          tuple(normals[near].T), np, 0.1 * threshold)
+    return near[np.abs(slope) >= cos_max]
 
 
 def support(model: Model, points, normals, threshold: float, cos_max: float,
@@ -551,7 +599,8 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
                 continue  # nothing left to find here: its points stay unassigned
             model, taken, cost = best
             found.append(Detection(model, np.sort(taken), cost, rnd))
-            live[np.setdiff1d(group, taken)] = True
+            live[group] = True
+            live[taken] = False
             if progress:  # (on stderr, seconds since the call began: as decompose's lines)
                 print(f"round {rnd}: {model.name} with {len(taken)} of {len(group)} points "
                       f"({time.perf_counter() - started:.2f} s)", file=sys.stderr, flush=True)
@@ -562,8 +611,10 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
         # points stay unassigned.
         found = [d for d in _settled(found, cloud, threshold, graph)
                  if len(d.indices) >= min_inliers]
-    taken = np.concatenate([d.indices for d in found]) if found else np.empty(0, int)
-    unassigned = np.setdiff1d(np.arange(len(cloud)), taken)
+    free = np.ones(len(cloud), bool)
+    for d in found:
+        free[d.indices] = False
+    unassigned = np.flatnonzero(free)
     return Scene(found, unassigned, threshold, graph.spacing, graph.radius, cloud)
 
 
@@ -626,16 +677,14 @@ def _round(ctx: _Context, groups, rnd):
     count = len(ctx.classes)
     samples = [_fit_points(group, ctx.fit_points, _rng(ctx, rnd, g))
                for g, group in enumerate(groups)]
-    candidates = list(zip(*[_candidates(ctx, cls, samples, groups, _seed(ctx, rnd, s))
-                            for s, cls in enumerate(ctx.classes)], strict=True))
+    per_shape = [_candidates(ctx, cls, samples, groups, _seed(ctx, rnd, s))
+                 for s, cls in enumerate(ctx.classes)]
     best = [None] * len(groups)
     wins = {}
-    for g, found in enumerate(candidates):
-        sizes = np.array([len(c[1]) if c else 0 for c in found])
-        if sizes.any():
-            costs = np.array([c[2] if c else np.inf for c in found])
-            wins[g] = choose(sizes, costs, ctx.tolerance)
-            best[g] = found[wins[g]]
+    for g, found in enumerate(zip(*per_shape, strict=True)):
+        decided = _decided(ctx, found)
+        if decided is not None:
+            wins[g], best[g] = decided
     for s in range(count - 1):
         pending = [g for g, win in wins.items() if win > s]
         if not pending:
@@ -645,9 +694,12 @@ def _round(ctx: _Context, groups, rnd):
         simpler = _candidates(ctx, ctx.classes[s], fit_on, [groups[g] for g in pending],
                               _seed(ctx, rnd, count + s))
         for g, c in zip(pending, simpler, strict=True):
+            # (the compatible points bound the support: most refits need no components)
             if c and len(c[1]) * (1.0 + ctx.tolerance) >= len(best[g][1]):
-                best[g] = c
-                del wins[g]
+                taken = _largest(ctx, c[1])
+                if len(taken) * (1.0 + ctx.tolerance) >= len(best[g][1]):
+                    best[g] = c[0], taken, c[2]
+                    del wins[g]
     return [None if b is None else _polished(ctx, *b, group, _rng(ctx, rnd, g, 2 * count))
             for g, (b, group) in enumerate(zip(best, groups, strict=True))]
 
@@ -680,8 +732,33 @@ def _polished(ctx: _Context, model: Model, taken, cost, group, rng):
     if not inliers.any():
         return model, taken, cost
     refitted = cls.from_theta(theta, unit, inliers, threshold).rescaled(scale, center)
-    support = _support(ctx, refitted, group)
+    near = _compatible(ctx, refitted, group)
+    if len(near) < len(taken):  # (its support cannot be larger)
+        return model, taken, cost
+    support = _largest(ctx, near)
     return (refitted, support, cost) if len(support) >= len(taken) else (model, taken, cost)
+
+
+def _decided(ctx: _Context, found):
+    """(index of the winner, its (model, support, cost)) among one group's candidates
+    found (S,) (each (model, compatible indices, cost) or None; ``choose`` on their
+    supports), or None when no support has a point. A support is the largest component
+    of the compatible points, so their count bounds it: supports are measured from the
+    largest bound down, and one whose bound is below what the tolerance lets win is
+    left unmeasured (it could neither be the largest nor a contender)."""
+    sizes = np.zeros(len(found), np.int64)
+    supports = [None] * len(found)
+    bounds = np.array([len(c[1]) if c else 0 for c in found])
+    for s in np.argsort(-bounds, kind="stable"):
+        if bounds[s] == 0 or bounds[s] * (1.0 + ctx.tolerance) < sizes.max():
+            break
+        supports[s] = _largest(ctx, found[s][1])
+        sizes[s] = len(supports[s])
+    if not sizes.any():
+        return None
+    costs = np.array([c[2] if c else np.inf for c in found])
+    win = choose(sizes, costs, ctx.tolerance)
+    return win, (found[win][0], supports[win], found[win][2])
 
 
 def _settled(found, cloud, threshold, graph: RadiusGraph):
@@ -718,9 +795,10 @@ def _fit_points(group, fit_points, rng):
 
 
 def _candidates(ctx: _Context, cls, fit_on, groups, seed: int):
-    """Per group: (model, support indices into the cloud, cost) of shape cls fitted to
-    the points cloud[fit_on[g]], its support measured on cloud[groups[g]]; None where no
-    model could be fitted. One ``fit_batch`` call (seed ``seed``) for all groups."""
+    """Per group: (model, compatible indices into the cloud, cost) of shape cls fitted to
+    the points cloud[fit_on[g]], its compatible points taken from cloud[groups[g]]
+    (``_largest`` of them is its support); None where no model could be fitted. One
+    ``fit_batch`` call (seed ``seed``) for all groups."""
     out = [None] * len(groups)
     which = [g for g, sample in enumerate(fit_on) if len(sample) >= cls.sample_size]
     if not which:
@@ -731,13 +809,17 @@ def _candidates(ctx: _Context, cls, fit_on, groups, seed: int):
                      **ctx.fit_options)
     for g, result in zip(which, fits, strict=True):
         if result is not None:
-            out[g] = result.model, _support(ctx, result.model, groups[g]), result.cost
+            out[g] = result.model, _compatible(ctx, result.model, groups[g]), result.cost
     return out
 
 
-def _support(ctx: _Context, model: Model, group) -> np.ndarray:
-    """``support`` of model on cloud[group] (indices into the cloud), joined through
-    the call's graph."""
-    near = group[compatible(model, ctx.cloud[group], ctx.normals[group], ctx.threshold,
+def _compatible(ctx: _Context, model: Model, group) -> np.ndarray:
+    """``compatible`` points of model among cloud[group], as indices into the cloud."""
+    return group[compatible(model, ctx.cloud[group], ctx.normals[group], ctx.threshold,
                             ctx.cos_max)]
+
+
+def _largest(ctx: _Context, near) -> np.ndarray:
+    """The largest connected component (the call's graph) of the points near (indices
+    into the cloud): the support, when near are a model's compatible points."""
     return near[ctx.graph.components(near) == 0] if near.size else near

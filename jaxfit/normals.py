@@ -261,26 +261,32 @@ def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None) 
     and the points ``pairs`` (E, 2) joins it to (its neighbours within a radius, each
     pair listed once); a point with fewer than ``PAIR_LEAST`` such points takes its
     normal from its k nearest neighbours (from ``tree``, a cKDTree over points, when
-    given). The scatter sums are bincounts over the pairs'
-    differences (no tree query, no (M, k, 3) neighbourhoods): ``detect`` lists the pairs
-    for its connectivity anyway (docs/normals.md)."""
+    given). The scatter sums are bincounts over the pairs' differences (no tree query,
+    no (M, k, 3) neighbourhoods): ``detect`` lists the pairs for its connectivity
+    anyway (docs/normals.md)."""
     m = len(points)
     if m < 3:
         raise ValueError(f"normals need at least 3 distinct points, got {m}")
-    src = np.concatenate([pairs[:, 0], pairs[:, 1]])
-    dst = np.concatenate([pairs[:, 1], pairs[:, 0]])
-    diff = points[dst] - points[src]  # relative to the point itself: no digits lost
-    count = np.bincount(src, minlength=m) + 1.0  # (itself: a zero difference)
-    sums = [np.bincount(src, diff[:, a], m) for a in range(3)]
+    first, second = pairs[:, 0], pairs[:, 1]
+    # Each pair's difference, from the first point (the second sees its negative):
+    # the products are the same from either end, the sums change sign. Differences
+    # from the point itself lose no digits on a cloud far from the origin.
+    diff = [np.take(c, second) - np.take(c, first) for c in np.ascontiguousarray(points.T)]
+    count = np.bincount(first, minlength=m) + np.bincount(second, minlength=m) + 1.0
+    sums = [np.bincount(first, d, m) - np.bincount(second, d, m) for d in diff]
 
     def scatter(a, b):
-        return np.bincount(src, diff[:, a] * diff[:, b], m) - sums[a] * sums[b] / count
+        product = diff[a] * diff[b]
+        both = np.bincount(first, product, m) + np.bincount(second, product, m)
+        return both - sums[a] * sums[b] / count
 
     xx, yy, zz, xy, xz, yz = (scatter(0, 0), scatter(1, 1), scatter(2, 2), scatter(0, 1),
                               scatter(0, 2), scatter(1, 2))
     cov = np.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], axis=1).reshape(-1, 3, 3)
-    out = smallest_eigenvectors(cov)
-    few = np.flatnonzero(count < PAIR_LEAST)
+    out = np.empty((m, 3))
+    few = count < PAIR_LEAST
+    out[~few] = smallest_eigenvectors(cov[~few])
+    few = np.flatnonzero(few)
     if len(few):
         k = min(k, m)
         hood = (knn(points, k, points[few]) if tree is None
