@@ -728,15 +728,20 @@ def _polished(ctx: _Context, model: Model, taken, cost, group, rng):
                                          .theta(), unit, threshold)
     if not (np.all(np.isfinite(theta)) and new_cost < start):
         return model, taken, cost
+    # Bounded by all the group's points near it, as the fits bound their models by the
+    # points they saw (its support alone leaves out an edge whose normals are blurred:
+    # a small cone's base, which then went to the floor).
+    unit = (ctx.cloud[group] - center) / scale
     inliers = np.abs(cls.theta_residual(theta, tuple(unit.T), np)) < threshold
     if not inliers.any():
         return model, taken, cost
     refitted = cls.from_theta(theta, unit, inliers, threshold).rescaled(scale, center)
     near = _compatible(ctx, refitted, group)
-    if len(near) < len(taken):  # (its support cannot be larger)
+    least = len(taken) / (1.0 + ctx.tolerance)
+    if len(near) < least:  # (its support cannot be large enough)
         return model, taken, cost
     support = _largest(ctx, near)
-    return (refitted, support, cost) if len(support) >= len(taken) else (model, taken, cost)
+    return (refitted, support, cost) if len(support) >= least else (model, taken, cost)
 
 
 def _decided(ctx: _Context, found):
