@@ -140,8 +140,9 @@ def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[C
         return None
     sizes = np.fromiter((len(c) for c in clouds), np.int64, len(clouds))
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    columns = [np.concatenate([c[:, i] for c in clouds], dtype=np.float64, casting="unsafe")
-               for i in range(3)]
+    every = np.concatenate(clouds, dtype=np.float64, casting="unsafe")  # (N, 3), a copy
+    columns = np.ascontiguousarray(every.T)  # (3, N); worked on in place (fresh pages of
+    # large temporaries were half of this function's time)
     # A NaN spreads to its cloud's min and max, an inf is one of them.
     lo = np.stack([np.minimum.reduceat(col, starts) for col in columns], axis=1)  # (C, 3)
     hi = np.stack([np.maximum.reduceat(col, starts) for col in columns], axis=1)
@@ -151,9 +152,11 @@ def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[C
         return None
     extent = (hi - lo).max(axis=1)
     center = 0.5 * (lo + hi)
-    offset = [col - np.repeat(center[:, i], sizes) for i, col in enumerate(columns)]
-    scale = np.maximum.reduceat(np.sqrt(offset[0] ** 2 + offset[1] ** 2 + offset[2] ** 2),
-                                starts)  # (``row_norms``, column by column)
+    columns -= np.repeat(center.T, sizes, axis=1)  # points - center
+    norms = columns[0] ** 2  # (``row_norms``, column by column)
+    norms += columns[1] ** 2
+    norms += columns[2] ** 2
+    scale = np.maximum.reduceat(np.sqrt(norms, out=norms), starts)
     if np.any((extent > 0) & (extent < _checks.MIN_EXTENT)) or not np.all(scale > 0):
         return None
     try:
@@ -161,12 +164,13 @@ def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[C
                   else _checks.positive(t, "threshold") for i, t in enumerate(thresholds)]
     except ValueError:
         return None
-    every = np.repeat(scale, sizes)
-    unit = np.stack([o / every for o in offset], axis=1)  # (N, 3)
+    columns /= np.repeat(scale, sizes)
+    # (N, 3) in rows, as prepare's: a shape's bounding multiplies it by vectors, and in
+    # columns BLAS sums those products in another order (a plane's patch moved by ulps)
+    unit = np.ascontiguousarray(columns.T)
     out = []
-    for i, (c, start, n) in enumerate(zip(clouds, starts.tolist(), sizes.tolist(),
-                                          strict=True)):
-        cloud = Cloud(np.array(c, np.float64), None, None, center[i], float(scale[i]),
+    for i, (start, n) in enumerate(zip(starts.tolist(), sizes.tolist(), strict=True)):
+        cloud = Cloud(every[start:start + n], None, None, center[i], float(scale[i]),
                       limits[i], bounds)
         cloud.__dict__["unit"] = unit[start:start + n]  # (the cached property, made)
         out.append(cloud)
