@@ -10,11 +10,12 @@ precision and recall of that detection. Real: the Fit4CAD point clouds from
 ``_primitives`` files), scored the same way and drawn as coloured points (truth left,
 detection right) to benchmarks/results/detect/*.png, with summary.md and results.json.
 
-``--cgal``: the scene section of ``benchmarks.peers`` alone (its five ~22k-point synthetic
-scenes with 10 % outliers and the two Fit4CAD scans, jaxfit.detect and CGAL's
-efficient_RANSAC interleaved in one process, ``--repeats`` timed warm runs each, the
-median kept), written to benchmarks/results/detect/cgal.{md,json}; peers.py has no option
-that runs its scenes only.
+``--cgal``: the scenes of ``benchmarks.peers`` alone (its five ~22k-point synthetic
+scenes with 10 % outliers and the two Fit4CAD scans), jaxfit.detect (its own normals, and
+given CGAL's) and CGAL's efficient_RANSAC interleaved in one process, ``--repeats`` timed
+warm runs each, the medians kept, written to benchmarks/results/detect/cgal.{md,json}
+(peers.py has no option that runs its scenes only; this uses its generator, CGAL call
+and scoring).
 """
 
 from __future__ import annotations
@@ -189,43 +190,120 @@ def _markdown(synthetic_rows, real_rows):
     return "\n".join(lines) + "\n"
 
 
-def side_by_side(repeats: int) -> None:
-    """jaxfit.detect and CGAL on benchmarks.peers' scenes, interleaved in one run
-    (``peers.scenes``), to cgal.md and cgal.json."""
+def _clouds():
+    """(name, points, truth indices, truth types) of benchmarks.peers' scenes: its
+    ``SCENES`` synthetic ones and the Fit4CAD scans found in DATA."""
     from benchmarks import peers
 
-    methods = peers.available()
-    if "cgal" not in methods:
+    for seed in range(peers.SCENES):
+        points, truth, kinds, objects = peers.synthetic_scene(seed)
+        yield f"synthetic {seed} ({objects})", points, truth, kinds
+    for name in ("PC33", "PC21"):
+        if (DATA / f"{name}.txt").exists():
+            yield (f"Fit4CAD {name}", *load_fit4cad(name))
+        else:
+            print(f"Fit4CAD {name} skipped: not found in {DATA}", flush=True)
+
+
+def _side_row(name, points, truth, kinds, repeats: int) -> dict:
+    """One scene: jaxfit.detect with its own normals (as benchmarks.peers times it),
+    jaxfit.detect given CGAL's normals, and CGAL with peers' matched parameters; each
+    warm, then ``repeats`` interleaved timed runs (median wall and CPU seconds)."""
+    from types import SimpleNamespace
+
+    from benchmarks import peers
+    from jaxfit.engine.cloud import default_threshold
+
+    threshold = default_threshold(np.ptp(points, axis=0))  # detect's default
+    spacing = peers.median_spacing(points)
+    normals = peers.o3d_normals(points)
+    point_set = peers.cgal_point_set(points, normals)
+    runs = {
+        "jaxfit": lambda: jaxfit.detect(points, key=0),
+        "jaxfit_given_normals": lambda: jaxfit.detect(points, normals=normals, key=0),
+        "cgal": lambda: peers.cgal_detect(
+            point_set, len(points), ("plane", "sphere", "cylinder", "cone"), threshold,
+            4.0 * spacing, 0.01 * len(points), normal_threshold=np.cos(np.radians(30.0))),
+    }
+    results = {m: run() for m, run in runs.items()}  # warm
+    wall, cpu = {m: [] for m in runs}, {m: [] for m in runs}
+    for _ in range(repeats):
+        for m, run in runs.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            run()
+            wall[m].append(time.perf_counter() - start)
+            cpu[m].append(time.process_time() - start_cpu)
+    lines, labels = results.pop("cgal")
+    labels = labels()
+    results["cgal"] = SimpleNamespace(shapes=[
+        SimpleNamespace(shape=peers.parse_cgal(line)[0], indices=np.flatnonzero(labels == j))
+        for j, line in enumerate(lines)])
+    row = {"scene": name, "points": len(points), "primitives": len(truth), "methods": {}}
+    for m in runs:
+        row["methods"][m] = {"s": float(np.median(wall[m])), "cpu_s": float(np.median(cpu[m])),
+                             "detected": len(results[m].shapes),
+                             "found": peers.found_count(truth, kinds, results[m].shapes)}
+    return row
+
+
+def side_by_side(repeats: int) -> None:
+    """jaxfit.detect and CGAL on benchmarks.peers' scenes, interleaved in one run, to
+    cgal.md and cgal.json."""
+    from benchmarks import peers
+
+    if "cgal" not in peers.available():
         raise SystemExit("CGAL (with Open3D for its normals) is needed for --cgal")
     start = time.perf_counter()
-    rows = peers.scenes(peers.SCENES, repeats, methods, fit4cad=True)
+    rows = []
+    for cloud in _clouds():
+        rows.append(_side_row(*cloud, repeats))
+        print(json.dumps(rows[-1]), flush=True)
     meta = {"machine": f"{platform.machine()}, {peers._cores()} cores",
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "seconds": time.perf_counter() - start, "repeats": repeats}
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "cgal.json").write_text(json.dumps({"meta": meta, "scenes": rows}, indent=1))
-    table = peers.markdown([], rows, {"quick": False, "machine": meta["machine"],
-                                      "date": meta["date"], "note": ""})
-    table = table[table.index("| scene |"):]
-    ratios = [r["methods"]["jaxfit"]["s"] / r["methods"]["cgal"]["s"] for r in rows]
-    found = {m: sum(r["methods"][m]["found"] for r in rows) for m in ("jaxfit", "cgal")}
+    (OUT / "cgal.md").write_text(_side_markdown(rows, meta))
+    print((OUT / "cgal.md").read_text())
+
+
+def _side_markdown(rows, meta) -> str:
     truth = sum(r["primitives"] for r in rows)
-    text = "\n".join([
-        "# jaxfit.detect vs CGAL efficient_RANSAC, side by side",
-        "",
-        f"`python -m benchmarks.detect --cgal --repeats {repeats}` on {meta['machine']} "
-        f"({meta['date']}, {meta['seconds']:.0f} s): the scenes of `benchmarks.peers`, "
-        f"each method warm, then {repeats} interleaved timed runs, median wall time. "
-        "CGAL's normals (Open3D, 16 neighbours) are estimated outside its time, jaxfit's "
-        "inside. A true primitive is found when the detection sharing most of its points "
-        "has its type and precision and recall >= 0.9.",
-        "",
-        f"Ratio jaxfit / CGAL {min(ratios):.2f}-{max(ratios):.2f} (median "
-        f"{np.median(ratios):.2f}); found {found['jaxfit']} of {truth} (jaxfit) and "
-        f"{found['cgal']} of {truth} (CGAL).",
-        "", table])
-    (OUT / "cgal.md").write_text(text)
-    print(text)
+    names = {"jaxfit": "jaxfit", "jaxfit_given_normals": "jaxfit, CGAL's normals",
+             "cgal": "CGAL"}
+    summary = []
+    for m in ("jaxfit", "jaxfit_given_normals"):
+        ratios = [r["methods"][m]["s"] / r["methods"]["cgal"]["s"] for r in rows]
+        summary.append(f"{names[m]} / CGAL wall time {min(ratios):.2f}-{max(ratios):.2f} "
+                       f"(median {np.median(ratios):.2f})")
+    found = ", ".join(f"{names[m]} {sum(r['methods'][m]['found'] for r in rows)}"
+                      for m in names)
+    lines = [
+        "# jaxfit.detect vs CGAL efficient_RANSAC, side by side", "",
+        f"`python -m benchmarks.detect --cgal --repeats {meta['repeats']}` on "
+        f"{meta['machine']} ({meta['date']}, {meta['seconds']:.0f} s): the scenes of "
+        "`benchmarks.peers` (five ~22k-point synthetic floor scenes with 10 % outliers, "
+        "the Fit4CAD scans PC33 and PC21), each method warm, then "
+        f"{meta['repeats']} interleaved timed runs; medians of wall and process CPU "
+        "seconds. CGAL gets Open3D's normals (16 neighbours), estimated outside its "
+        "time, with peers' matched parameters; \"jaxfit\" estimates its own normals "
+        "inside its time (as `benchmarks.peers` times it); \"jaxfit, CGAL's normals\" "
+        "is given the same normals as CGAL. A true primitive is found when the detection "
+        "sharing most of its points has its type and precision and recall >= 0.9.", "",
+        "; ".join(summary) + f". Found of {truth}: {found}.", "",
+        "| scene | points | primitives | " + " | ".join(
+            f"{names[m]} s (CPU s) | found (detected)" for m in names) + " | ratio | "
+        "ratio, same normals |",
+        "|---|---|---|" + "---|---|" * len(names) + "---|---|"]
+    for r in rows:
+        v = r["methods"]
+        cells = [f"{v[m]['s']:.3f} ({v[m]['cpu_s']:.3f}) | {v[m]['found']} ({v[m]['detected']})"
+                 for m in names]
+        lines.append(f"| {r['scene']} | {r['points']} | {r['primitives']} | "
+                     + " | ".join(cells)
+                     + f" | {v['jaxfit']['s'] / v['cgal']['s']:.2f} | "
+                     f"{v['jaxfit_given_normals']['s'] / v['cgal']['s']:.2f} |")
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None):
