@@ -4,6 +4,7 @@ cloud-by-cloud twins give: ``prepare_many`` the Clouds of ``prepare``, ``stacked
 of ``status``; and where a cloud is bad, ``fit_batch`` still names it. No kernel runs
 here but one small batch (the suite's 1024 bucket)."""
 
+import importlib
 import math
 
 import numpy as np
@@ -16,6 +17,8 @@ from jaxfit.engine.options import Bounds, FitOptions
 from jaxfit.engine.stopping import AdaptiveStopping, required_hypotheses
 from jaxfit.evaluation.synthetic import demo_cloud
 from jaxfit.shapes import Cylinder, Sphere
+
+fit_module = importlib.import_module("jaxfit.engine.fit")  # (jaxfit.engine.fit is the function)
 
 
 def _clouds(rng, sizes, dtype=np.float64):
@@ -47,7 +50,8 @@ def test_prepare_many_is_prepare_bit_for_bit(rng, dtype):
 def test_fit_batch_gives_what_the_cloud_by_cloud_path_gives(shape):
     # Lists are not arrays: they take prepare's path, arrays prepare_many's (a plane's
     # patch had moved by ulps when the unit points were laid out in columns).
-    clouds = [demo_cloud(shape, count=n, seed=n)[0] for n in (300, 1000, 640)]
+    clouds = [demo_cloud(shape, count=n, seed=n)[0] for n in (300, 1000, 640, 90)]
+    assert len(clouds) >= fit_module.MANY_MIN
     fast = jaxfit.fit_batch(clouds, shape, key=3)
     slow = jaxfit.fit_batch([c.tolist() for c in clouds], shape, key=3)
     for a, b in zip(fast, slow, strict=True):
@@ -70,7 +74,7 @@ def test_prepare_many_leaves_bad_clouds_to_prepare(rng):
 
 
 def test_fit_batch_still_names_the_bad_cloud(rng):
-    clouds = _clouds(rng, [200, 200, 200])
+    clouds = _clouds(rng, [200] * fit_module.MANY_MIN)
     clouds[1][5, 0] = np.nan
     with pytest.raises(ValueError, match="cloud 1: points contain 1 row"):
         jaxfit.fit_batch(clouds, "sphere")
@@ -78,15 +82,15 @@ def test_fit_batch_still_names_the_bad_cloud(rng):
     with pytest.raises(jaxfit.FitError, match="cloud 1: all points coincide"):
         jaxfit.fit_batch(clouds, "sphere")
     with pytest.raises(ValueError, match="cloud 2: threshold must be a positive"):
-        jaxfit.fit_batch(_clouds(rng, [200] * 3), "sphere", thresholds=[0.1, 0.1, 0.0])
+        jaxfit.fit_batch(_clouds(rng, [200] * 4), "sphere", thresholds=[0.1, 0.1, 0.0, 0.1])
 
 
 def test_fit_batch_skips_a_coincident_cloud_as_before(rng):
     points, truth, _ = demo_cloud("sphere", count=500, seed=3)
-    results = jaxfit.fit_batch([points, np.ones((30, 3)), points], "sphere",
+    results = jaxfit.fit_batch([points, np.ones((30, 3)), points, points], "sphere",
                                skip_failures=True)
     assert results[1] is None
-    for r in (results[0], results[2]):
+    for r in (results[0], results[2], results[3]):
         assert np.linalg.norm(r.model.center - truth.center) < 0.02 * truth.radius
 
 

@@ -17,6 +17,10 @@ from .refine import FINAL_MIN_POINTS, final_refit
 from .result import FitResult
 from .scoring import MSAC
 
+#: Calls of at least this many clouds are prepared in array code (``prepare_many``):
+#: for one cloud its dozen extra array operations cost more than they save.
+MANY_MIN = 4
+
 
 def fit(points, shape, *, normals=None, threshold: float | None = None, key=0,
         options: FitOptions | None = None, **settings) -> FitResult:
@@ -93,7 +97,7 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
 
     results: list[FitResult | None] = [None] * len(clouds)
     prepared, which = None, list(range(len(clouds)))  # the clouds of the loop, their places
-    if normals is None and not (uses_normals or checked.bounds.gated):
+    if len(clouds) >= MANY_MIN and normals is None and not (uses_normals or checked.bounds.gated):
         prepared = prepare_many(clouds, cls, thresholds, checked.bounds)
     if prepared is None:  # (cloud by cloud: the first bad one named, coincident ones skipped)
         prepared, which = [], []
