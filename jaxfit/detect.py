@@ -10,25 +10,35 @@ cloud's median nearest-neighbour spacing. The normal test keeps a plane from tak
 bottom rim of a cylinder standing on it; the connectivity keeps a plane from taking the
 coplanar tops of two separate boxes.
 
+One neighbour structure serves the whole call (``RadiusGraph``): the distinct points in
+one KD-tree, every pair of them within the connectivity radius listed once. The groups,
+the supports, the final assignment and (when none are given) the normals, a PCA over each
+point's neighbours within that radius (``normals.pair_normals``), all read it.
+
 Each round works on *groups*: the connected components of the points still unassigned
 (at the same radius). Objects resting on a floor fall apart into one group each once the
 floor is taken. Every live group gives up at most one primitive per round: each shape is
-fitted (one ``jaxfit.fit`` call per group and shape, on at most ``fit_points`` of the
-group's points) and its support measured on the whole group. A group can only lose
-points to a primitive fitted inside it, so deciding the groups one after another in a
-round gives the same result as deciding each alone.
+fitted to every group at once (one ``jaxfit.fit_batch`` call per shape and round, group g
+its cloud g, on at most ``fit_points`` of each group's points) and its support measured
+on the whole group. A group can only lose points to a primitive fitted inside it, so the
+groups of a round do not interact. The candidates are fitted without LO-RANSAC
+(``CANDIDATE_OPTIONS``); each group's winner is refitted instead, by a least-squares fit
+on its support (``_polished``).
 
 Choice per group (deliberately simple): the candidate with the largest support wins; but
 a more complex shape only beats a simpler one (earlier in ``shapes``) when its support is
 larger by more than ``tolerance`` (default 5 %), since a cone or a huge sphere can always
 imitate a plane's points. When a more complex shape wins, each simpler one is refitted to
 the winner's support and is reported instead if its own support is within the tolerance.
-Ties in support go to the lower MSAC cost. At the end (``settle``) every point within the
-threshold of a detection and near its points goes to the nearest one (``_settled``).
+Ties in support go to the lower MSAC cost. A support is measured only where its count of
+compatible points (a bound on it) could still win. At the end (``settle``) every point
+within the threshold of a detection and near its points goes to the nearest one
+(``_settled``).
 
-Keys: round r, group g has the key ``fold_in(fold_in(key, r), g)``; in it shape s is
-fitted with ``fold_in(group_key, s)`` and refitted with ``fold_in(group_key, S + s)`` (S
-shapes), the same key drawing the fit's subsample of the group.
+Keys: every random choice is seeded from the key's words (``_entropy``) and its place:
+round r's fit_batch call for shape s of S is seeded ``_seed(r, s)`` (its refits of shape s
+``_seed(r, S + s)``), group g's subsample ``_rng(r, g)`` (for a refit ``_rng(r, g, S +
+s)``, for the winner's refit ``_rng(r, g, 2 S)``). A key gives the same scene every time.
 
 Measurements: docs/detect.md.
 """
@@ -552,25 +562,29 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
     threshold : inlier distance. Default: 0.5 % of the whole cloud's bounding-box
         diagonal, fixed for all rounds.
     normals : optional (N, 3) normals (any sign); default the source's own (a mesh's
-        face normals, an Open3D cloud's or a point file's normals), else
-        ``estimate_normals(points, orient=None)``. Used for the compatibility test and
-        passed on to the fits.
+        face normals, an Open3D cloud's or a point file's normals), else estimated by PCA
+        over each point's neighbours within the connectivity radius (its ``NORMAL_K``
+        nearest where fewer than ``normals.PAIR_LEAST`` are that near:
+        ``normals.pair_normals``). Used for the compatibility test and passed on to the
+        fits.
     max_angle : largest angle in degrees between a point's normal and the model's.
     connect : connectivity radius in units of the median nearest-neighbour spacing.
     tolerance : relative support margin a more complex shape needs to beat a simpler one.
     fit_points : most points a fit sees: a random subsample of the group (or of the
-        winner's support, for a refit) drawn from the fit's key; its support is then
+        winner's support, for a refit) drawn from the key; its support is then
         measured on the whole group.
     settle : give every point within ``threshold`` of a detection, and within the
         connectivity radius of its points, to the nearest one at the end (``_settled``).
-    key : int seed or JAX key; round r, group g, shape s of S fits with
-        ``fold_in(fold_in(fold_in(key, r), g), s)`` and refits with ``... , S + s)``.
+    key : int seed or JAX key (``key=0`` and ``jax.random.key(0)`` give the same
+        scene); every random choice is seeded from it and its place in the loop (module
+        docstring, "Keys").
     progress : print one line per detected primitive on stderr, with the seconds since
         the call began.
-    **fit_options : passed to every ``jaxfit.fit`` call: ``FitOptions`` fields (e.g.
-        ``batch_size``, ``min_hypotheses``, ``estimator``) or ``options``, checked for
-        every shape before any work; not ``normals``, ``threshold`` or ``key``, which
-        detect sets.
+    **fit_options : passed to every ``jaxfit.fit_batch`` call: ``FitOptions`` fields
+        (e.g. ``batch_size``, ``min_hypotheses``, ``estimator``, ``refine=True`` to run
+        LO-RANSAC on every candidate) over ``CANDIDATE_OPTIONS``, or ``options`` (a
+        FitOptions, used as it is), checked for every shape before any work; not
+        ``normals``, ``threshold`` or ``key``, which detect sets.
 
     Returns
     -------
@@ -658,10 +672,12 @@ def _groups(graph: RadiusGraph, idx, min_inliers):
     if len(idx) < min_inliers:
         return []
     labels = graph.components(idx)
-    sizes = np.bincount(labels)
-    order = np.argsort(labels, kind="stable")
-    parts = np.split(idx[order], np.cumsum(sizes)[:-1])
-    return [part for part, size in zip(parts, sizes, strict=True) if size >= min_inliers]
+    sizes = np.bincount(labels)  # (decreasing: label 0 is the largest)
+    order = idx[np.argsort(labels, kind="stable")]
+    ends = np.cumsum(sizes)
+    # (only the large ones are cut out: an outlier is a component of its own)
+    return [order[end - size:end] for end, size in zip(ends, sizes, strict=False)
+            if size >= min_inliers]
 
 
 def _round(ctx: _Context, groups, rnd):

@@ -3,6 +3,7 @@
 Every fit inside detect sees at most ``fit_points`` = 1024 points (bucket 1024), so each
 shape's kernel compiles once for the whole file."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -56,6 +57,37 @@ def test_min_inliers_stops_the_loop_and_the_key_fixes_the_result():
     assert jaxfit.detect(points, min_inliers=len(points), key=1).shapes == []
     again = jaxfit.detect(points, min_inliers=floor - 200, key=1)
     np.testing.assert_array_equal(again.shapes[0].indices, only_floor.shapes[0].indices)
+    # An int seed and the JAX key made from it seed the same choices.
+    as_key = jaxfit.detect(points, min_inliers=floor - 200, key=jax.random.key(1))
+    np.testing.assert_array_equal(as_key.shapes[0].indices, only_floor.shapes[0].indices)
+    assert as_key.shapes[0].model == only_floor.shapes[0].model
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_candidates_skip_lo_unless_the_caller_asks(monkeypatch):
+    """The candidates' fit_batch calls get CANDIDATE_OPTIONS (no LO-RANSAC) under the
+    caller's settings; a FitOptions given whole is passed as it is."""
+    import sys
+
+    from jaxfit.engine import FitOptions
+
+    module = sys.modules["jaxfit.detect"]
+    seen = []
+
+    def fake(clouds, shape, **kwargs):
+        seen.append(kwargs)
+        raise _Stop
+
+    monkeypatch.setattr(module, "fit_batch", fake)
+    points, _, _ = scene(0, objects=["sphere"], count=300)
+    for kwargs in ({}, {"refine": True}, {"options": FitOptions(refine=True)}):
+        with pytest.raises(_Stop):
+            jaxfit.detect(points, **kwargs)
+    assert seen[0]["refine"] is False and seen[1]["refine"] is True
+    assert "refine" not in seen[2] and seen[2]["options"].refine is True
 
 
 def test_connected_components_and_choice():
