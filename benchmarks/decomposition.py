@@ -83,7 +83,8 @@ def main():
     for name in names:
         result, cpu = decompose_model(name)
         if not args.no_coacd:
-            compare_model(name, result, cpu)
+            measured, measured_cpu = decompose_measured(name, len(result.parts))
+            compare_model(name, result, cpu, measured, measured_cpu)
     write_summary()
     if not args.no_coacd:
         write_comparison()
@@ -115,6 +116,17 @@ def decompose_model(name: str):
     (out / "summary.json").write_text(json.dumps(row, indent=1))
     print(_summary_line(row), flush=True)
     return result, cpu
+
+
+def decompose_measured(name: str, parts: int):
+    """``method="measured"`` on the same points with ``max_parts`` the PSDA's part count
+    (so CoACD's pieces at that count stand against both), twice (the second run warm).
+    Returns (the warm Decomposition, its process CPU seconds)."""
+    points = load_source(DATA / MODELS[name], num_points=NUM_POINTS, seed=0)
+    decompose(points, method="measured", max_parts=parts, key=0)
+    cpu = time.process_time()
+    result = decompose(points, method="measured", max_parts=parts, key=0)
+    return result, time.process_time() - cpu
 
 
 def compact(parts: dict) -> dict:
@@ -199,8 +211,9 @@ def coacd_pieces(name: str, mesh, parts: int) -> tuple[list[np.ndarray], float]:
     return [np.asarray(v) for v, _ in pieces], (seconds, cpu)
 
 
-def compare_model(name: str, result, cpu: float) -> dict:
-    """Score jaxfit's, CoACD's and CoACD+OBB's pieces against the mesh; write
+def compare_model(name: str, result, cpu: float, measured=None, measured_cpu=None) -> dict:
+    """Score jaxfit's (the thesis's PSDA and, if given, ``method="measured"``), CoACD's
+    and CoACD+OBB's pieces against the mesh, CoACD at the PSDA's part count; write
     <name>/vs_coacd.json and vs_coacd.png."""
     mesh = load_mesh(DATA / MODELS[name])
     points = np.asarray(result.points)
@@ -214,6 +227,9 @@ def compare_model(name: str, result, cpu: float) -> dict:
              "coacd_obb": [twosided.oriented_box(v) for v in hulls]}
     row = {"model": name, "coacd_seconds": coacd_seconds, "jaxfit_seconds": result.seconds,
            "coacd_cpu": coacd_cpu, "jaxfit_cpu": cpu}
+    if measured is not None:
+        sides["measured"] = [p.model for p in measured.parts]
+        row.update(measured_seconds=measured.seconds, measured_cpu=measured_cpu)
     for side, models in sides.items():
         start = time.perf_counter()
         measures = twosided.compare(mesh, models, seed=0)
@@ -227,6 +243,9 @@ def compare_model(name: str, result, cpu: float) -> dict:
                                 twosided.compare(mesh, _bodies(truth), seed=0).items()}
         row["jaxfit_vs_truth"] = {k: _plain(v) for k, v in
                                   twosided.compare(truth, ours, seed=0).items()}
+        if "measured" in sides:
+            row["measured_vs_truth"] = {k: _plain(v) for k, v in twosided.compare(
+                truth, sides["measured"], seed=0).items()}
     out = RESULTS / name
     out.mkdir(exist_ok=True)
     (out / "vs_coacd.json").write_text(json.dumps(row, indent=1))
@@ -254,15 +273,25 @@ def _plain(value):
 
 def _comparison_line(row) -> str:
     cells = [row["model"]]
-    for side in ("jaxfit", "coacd", "coacd_obb"):
-        r = row[side]
+    for side in SIDES:
+        r = row.get(side)
+        if r is None:
+            cells += ["—"] * 4
+            continue
         cells.append(f"{r['parts']}")
         cells.append(f"{r['viou']:.3f} ± {r['viou_se']:.3f}")
         cells.append(f"{r['chamfer']:.2%}")
         cells.append(f"{r['hausdorff']:.1%}")
-    cells += [f"{row['jaxfit_seconds']:.1f}", f"{row['coacd_seconds']:.1f}",
-              _cpu(row.get("jaxfit_cpu")), _cpu(row.get("coacd_cpu"))]
+    cells += [f"{row['jaxfit_seconds']:.1f}", _cpu(row.get("measured_seconds")),
+              f"{row['coacd_seconds']:.1f}", _cpu(row.get("jaxfit_cpu")),
+              _cpu(row.get("measured_cpu")), _cpu(row.get("coacd_cpu"))]
     return "| " + " | ".join(cells) + " |"
+
+
+#: The sides of the comparison, in the table's order.
+SIDES = ("jaxfit", "measured", "coacd", "coacd_obb")
+LABELS = {"jaxfit": "jaxfit PSDA (thesis)", "measured": "jaxfit measured",
+          "coacd": "CoACD hulls", "coacd_obb": "CoACD + OBB"}
 
 
 def _cpu(value) -> str:
@@ -274,12 +303,15 @@ def write_comparison():
             if (p := RESULTS / name / "vs_coacd.json").exists()]
     if not rows:
         return
-    head = ["| model | jaxfit parts | jaxfit vIoU | jaxfit Chamfer | jaxfit Hausdorff "
+    head = ["| model | PSDA parts | PSDA vIoU | PSDA Chamfer | PSDA Hausdorff "
+            "| measured parts | measured vIoU | measured Chamfer | measured Hausdorff "
             "| CoACD parts | CoACD hulls vIoU | hulls Chamfer | hulls Hausdorff "
             "| OBB parts | CoACD+OBB vIoU | OBB Chamfer | OBB Hausdorff "
-            "| jaxfit s (warm) | CoACD s | jaxfit CPU s | CoACD CPU s |", "|" + "---|" * 17]
+            "| PSDA s (warm) | measured s (warm) | CoACD s | PSDA CPU s | measured CPU s "
+            "| CoACD CPU s |", "|" + "---|" * 23]
     averaged = [r for r in rows if r["coacd"]["viou"] >= WELL_DEFINED]
-    lines = ["# jaxfit's PSDA against CoACD at the same part count", "",
+    lines = ["# jaxfit (the thesis's PSDA and method=\"measured\") against CoACD at the "
+             "same part count", "",
              "Written by `python -m benchmarks.decomposition` (measures: "
              "`jaxfit.evaluation.twosided`, docs/measures.md). vIoU: 40,000 Monte-Carlo "
              "points in the joint bounding box, ± one standard error. Chamfer (two-sided, "
@@ -291,35 +323,39 @@ def write_comparison():
              "the time of the run that made the cache; — where that run kept no CPU "
              "time).", ""] + head
     lines += [_comparison_line(r) for r in rows]
+    sides = [s for s in SIDES if all(s in r for r in averaged)]
     if averaged:
         mean = {s: {k: float(np.mean([r[s][k] for r in averaged]))
-                    for k in ("viou", "chamfer", "hausdorff")}
-                for s in ("jaxfit", "coacd", "coacd_obb")}
-        floor = [r["model"] for r in averaged if r["jaxfit"]["viou"] < r["coacd_obb"]["viou"]]
+                    for k in ("viou", "chamfer", "hausdorff")} for s in sides}
         lines += ["", f"Means over the {len(averaged)} meshes whose solid is well defined "
                   f"(CoACD's hulls reach vIoU ≥ {WELL_DEFINED}):", "",
                   "| | vIoU | Chamfer | Hausdorff |", "|---|---|---|---|"]
-        for side, label in (("jaxfit", "jaxfit PSDA"), ("coacd", "CoACD hulls"),
-                            ("coacd_obb", "CoACD + OBB")):
+        for side in sides:
             m = mean[side]
-            lines.append(f"| {label} | {m['viou']:.3f} | {m['chamfer']:.2%} | "
+            lines.append(f"| {LABELS[side]} | {m['viou']:.3f} | {m['chamfer']:.2%} | "
                          f"{m['hausdorff']:.1%} |")
-        gap = mean["coacd"]["viou"] - mean["jaxfit"]["viou"]
-        above = mean["jaxfit"]["viou"] - mean["coacd_obb"]["viou"]
-        lines += ["", f"- jaxfit's mean vIoU is {gap:.3f} below the hulls' (the issue's bar: "
-                  f"within 0.10) and {above:+.3f} against CoACD+OBB's.",
-                  f"- Chamfer ratio jaxfit / hulls: "
-                  f"{mean['jaxfit']['chamfer'] / mean['coacd']['chamfer']:.2f} (bar: ≤ 1.5); "
-                  f"jaxfit / CoACD+OBB: "
-                  f"{mean['jaxfit']['chamfer'] / mean['coacd_obb']['chamfer']:.2f}.",
-                  "- Meshes where jaxfit's vIoU falls below CoACD+OBB's (the floor): "
-                  + (", ".join(floor) if floor else "none") + "."]
-    ratios = sorted((r["jaxfit_seconds"] / r["coacd_seconds"], r["model"]) for r in rows)
-    fast = sum(t <= 0.2 for t, _ in ratios)
-    lines += ["", f"- Time ratio jaxfit (warm, wall) / CoACD per mesh (bar: ≤ 0.2): median "
-              f"{ratios[len(ratios) // 2][0]:.3f}; at most 0.2 on {fast} of {len(ratios)} "
-              "meshes; "
-              + ", ".join(f"{m} {t:.3f}" for t, m in ratios) + "."]
+        lines.append("")
+        for side in [s for s in ("jaxfit", "measured") if s in sides]:
+            floor = [r["model"] for r in averaged if r[side]["viou"] < r["coacd_obb"]["viou"]]
+            gap = mean["coacd"]["viou"] - mean[side]["viou"]
+            above = mean[side]["viou"] - mean["coacd_obb"]["viou"]
+            lines += [f"- {LABELS[side]}: mean vIoU {gap:.3f} below the hulls' (the issue's "
+                      f"bar: within 0.10), {above:+.3f} against CoACD+OBB's; Chamfer ratio "
+                      f"to the hulls {mean[side]['chamfer'] / mean['coacd']['chamfer']:.2f} "
+                      f"(bar: ≤ 1.5), to CoACD+OBB "
+                      f"{mean[side]['chamfer'] / mean['coacd_obb']['chamfer']:.2f}; meshes "
+                      "below CoACD+OBB's vIoU (the floor): "
+                      + (", ".join(floor) if floor else "none") + "."]
+    for side, seconds in (("jaxfit", "jaxfit_seconds"), ("measured", "measured_seconds")):
+        timed = [r for r in rows if seconds in r]
+        if not timed:
+            continue
+        ratios = sorted((r[seconds] / r["coacd_seconds"], r["model"]) for r in timed)
+        fast = sum(t <= 0.2 for t, _ in ratios)
+        lines += ["", f"- Time ratio {LABELS[side]} (warm, wall) / CoACD per mesh (bar: "
+                  f"≤ 0.2): median {ratios[len(ratios) // 2][0]:.3f}; at most 0.2 on {fast} "
+                  f"of {len(ratios)} meshes; "
+                  + ", ".join(f"{m} {t:.3f}" for t, m in ratios) + "."]
     left = [r for r in rows if r["coacd"]["viou"] < WELL_DEFINED]
     if left:
         lines += ["", "Not averaged (CoACD's own hulls reach vIoU < "
@@ -331,19 +367,22 @@ def write_comparison():
         lines += ["", "GraspIt's hand-made primitives (ground truth): their match with the "
                   "mesh, and jaxfit's primitives against them (the ground truth's solid "
                   "as the object):", "",
-                  "| model | truth vs mesh vIoU | truth vs mesh Chamfer | jaxfit vs truth "
-                  "vIoU | jaxfit vs truth Chamfer |", "|---|---|---|---|---|"]
+                  "| model | truth vs mesh vIoU | truth vs mesh Chamfer | PSDA vs truth "
+                  "vIoU | PSDA vs truth Chamfer | measured vs truth vIoU | measured vs truth "
+                  "Chamfer |", "|---|---|---|---|---|---|---|"]
         for r in truth:
             t, j = r["truth_vs_mesh"], r["jaxfit_vs_truth"]
+            m = r.get("measured_vs_truth")
             lines.append(f"| {r['model']} | {t['viou']:.3f} | {t['chamfer']:.2%} | "
-                         f"{j['viou']:.3f} | {j['chamfer']:.2%} |")
+                         f"{j['viou']:.3f} | {j['chamfer']:.2%} | "
+                         + (f"{m['viou']:.3f} | {m['chamfer']:.2%} |" if m else "— | — |"))
     (RESULTS / "vs_coacd.md").write_text("\n".join(lines) + "\n")
 
 
 def render_comparison(mesh, points, sides, row, path, *, dpi=100):
-    """A PNG of four panels: the mesh, jaxfit's primitives (coloured by type), CoACD's
-    hulls and their oriented boxes (one colour per piece), each titled with its vIoU and
-    Chamfer."""
+    """A PNG of one panel per side: the mesh, jaxfit's primitives (each method's,
+    coloured by type), CoACD's hulls and their oriented boxes (one colour per piece),
+    each titled with its vIoU and Chamfer."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from jaxfit.io.preview import _shaded, framed, pyplot, view_angles
@@ -352,12 +391,13 @@ def render_comparison(mesh, points, sides, row, path, *, dpi=100):
     elevation, azimuth = view_angles(points)
     lo, hi = points.min(axis=0), points.max(axis=0)
     centre, half = 0.5 * (lo + hi), 0.55 * (hi - lo).max()
-    fig = plt.figure(figsize=(16, 4.6))
+    fig = plt.figure(figsize=(4 * (len(sides) + 1), 4.6))
     palette = plt.get_cmap("tab20")
     panels = [("mesh", None)] + list(sides.items())
-    titles = {"jaxfit": "jaxfit PSDA", "coacd": "CoACD hulls", "coacd_obb": "CoACD + OBB"}
+    titles = {"jaxfit": "jaxfit PSDA", "measured": "jaxfit measured",
+              "coacd": "CoACD hulls", "coacd_obb": "CoACD + OBB"}
     for k, (side, models) in enumerate(panels):
-        ax = fig.add_subplot(1, 4, k + 1, projection="3d")
+        ax = fig.add_subplot(1, len(panels), k + 1, projection="3d")
         if models is None:
             ax.add_collection3d(Poly3DCollection(
                 mesh.triangles, facecolors=_shaded(mesh, (189, 195, 199, 255)),
@@ -366,7 +406,7 @@ def render_comparison(mesh, points, sides, row, path, *, dpi=100):
         else:
             for i, model in enumerate(models):
                 piece = model.to_mesh()
-                rgba = (model.colour if side == "jaxfit" else
+                rgba = (model.colour if side in ("jaxfit", "measured") else
                         tuple(int(255 * c) for c in palette(i % 20)))
                 ax.add_collection3d(Poly3DCollection(
                     piece.triangles, facecolors=_shaded(piece, rgba), edgecolors="none",

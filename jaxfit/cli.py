@@ -273,7 +273,8 @@ def _report_decomposition(result, args, out):
 def _cmd_decompose(args):
     from .decomposition import decompose
 
-    result = decompose(args.input, gain=args.gain, min_points=args.min_points,
+    result = decompose(args.input, method=args.method, max_parts=args.max_parts,
+                       gain=args.gain, min_points=args.min_points,
                        num_points=args.num_points, key=args.seed, progress=True)
     _report_decomposition(result, args, args.out)
     if args.urdf or args.mjcf:
@@ -467,6 +468,13 @@ def _add_decompose(sub):
                                 "gain; nearer 1 splits more (default 0.96)")
     decompose.add_argument("--min-points", type=int, default=None, metavar="M",
                            help="smallest part (default 2%% of the points)")
+    decompose.add_argument("--method", choices=("thesis", "measured"), default="thesis",
+                           help="thesis: the PSDA (box cuts, lowest mean distance); "
+                                "measured: greedy splits by the two-sided score "
+                                "(default thesis)")
+    decompose.add_argument("--max-parts", type=int, default=None, metavar="N",
+                           help="at most N parts (a positive integer; default: no limit "
+                                "for the thesis, 8 for measured)")
     _num_points(decompose)
     _seed(decompose)
     decompose.add_argument("--out", metavar="DIR",

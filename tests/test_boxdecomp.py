@@ -208,6 +208,21 @@ def test_min_points_is_honoured():
     assert decompose_boxes(points, gain=0.99, min_points=1001).leaves == [0]
 
 
+def test_max_leaves_stops_the_splits_breadth_first():
+    points = capsule()
+    full = decompose_boxes(points, gain=0.99, min_points=40)
+    assert len(full.leaves) > 3
+    for limit in (1, 2, 3):
+        tree = decompose_boxes(points, gain=0.99, min_points=40, max_leaves=limit)
+        check_tree(tree, len(points))
+        assert len(tree.leaves) == limit
+        # the same splits as the full tree, in its breadth-first order
+        for mine, theirs in zip(tree.nodes, full.nodes, strict=False):
+            assert np.array_equal(mine.indices, theirs.indices)
+    with pytest.raises(ValueError, match="max_leaves must be an integer >= 1"):
+        decompose_boxes(points, max_leaves=0)
+
+
 def test_tree_to_dict_is_json_ready():
     points, _ = l_shape(np.random.default_rng(0), count=2000)
     tree = decompose_boxes(points, gain=0.96)

@@ -172,6 +172,7 @@ def test_every_bad_output_path_fails_at_once_in_one_line(tmp_path, capsys, monke
         (["detect", c, "--mesh", str(tmp_path)], "--mesh .* is a folder"),
         (["decompose", c, "--json", str(tmp_path)], "--json .* is a folder"),
         (["decompose", c, "--urdf"], "--urdf and --mjcf write into the --out folder"),
+        (["decompose", c, "--method", "greedy"], "invalid choice: 'greedy'"),
         (["demo", "--json", str(missing)], "--json .* does not exist"),
         (["demo", "--out", str(a_file)], "--out .* is a file"),
         (["demo", "--shape", "sphere", "--out", str(a_file)], "--out .* is a file"),
@@ -288,3 +289,25 @@ def test_demo_honours_json_and_mesh_and_decompose_without_out_prints_the_parts(
     assert re.search(r"\d+ parts from \d+ points", captured.out) and "part 0:" in captured.out
     assert captured.err.strip().endswith("nothing written (give --out DIR, --json OUT or "
                                          "--mesh OUT)")
+
+
+def test_decompose_passes_method_and_max_parts(tmp_path, capsys, monkeypatch):
+    """--method and --max-parts reach decompose (defaults: the thesis, no limit)."""
+    import jaxfit.decomposition
+
+    seen = []
+
+    def recorded(source, **kwargs):
+        seen.append(kwargs)
+        raise ValueError("recorded")
+
+    cloud = tmp_path / "c.npy"
+    np.save(cloud, np.zeros((10, 3)))
+    assert main(["decompose", str(cloud), "--max-parts", "0"]) == 2
+    assert "max_parts must be a positive integer, got 0" in capsys.readouterr().err
+    monkeypatch.setattr(jaxfit.decomposition, "decompose", recorded)
+    assert main(["decompose", str(cloud), "--method", "measured", "--max-parts", "3"]) == 2
+    assert main(["decompose", str(cloud)]) == 2
+    assert "recorded" in capsys.readouterr().err
+    assert (seen[0]["method"], seen[0]["max_parts"]) == ("measured", 3)
+    assert (seen[1]["method"], seen[1]["max_parts"]) == ("thesis", None)

@@ -9,7 +9,8 @@ scores, in units of the object's diagonal. Then, greedily:
 
 1. Every part not yet searched gets candidate cuts (``cuts``): planes across its
    principal axes and the axes of its bounding box at ``FRACTIONS`` of its span, and at
-   its necks (``necks``: where the cross-section along an axis has a local minimum).
+   its necks and steps (``necks``: where the cross-section along an axis has a local
+   minimum, or changes sharply between neighbouring slabs).
    Every half of every cut of every part searched in the round is fitted with every
    primitive in one ``fit_batch`` call per primitive (hundreds of (half, primitive) fits
    per call), each half on at most ``SEARCH_POINTS`` points; its best primitive, by the
@@ -54,6 +55,8 @@ SLABS = 16
 #: A neck: a slab whose cross-section is at most this fraction of the largest
 #: cross-section on each side of it.
 NECK = 0.7
+#: Cuts tried per part at most (each gives two halves to fit).
+MAX_CUTS = 48
 #: Necks kept per axis (the narrowest).
 NECKS_PER_AXIS = 2
 #: Points of a candidate half given to RANSAC, and its hypotheses: the search only ranks
@@ -221,8 +224,9 @@ def _frame_box(cloud) -> Box:
 def cuts(cloud, min_points: int) -> list[np.ndarray]:
     """Candidate cuts of a part's points (M, 3), each as the (M,) bool mask of the points
     below its plane: across the part's principal axes and the axes of its MVBB (one
-    within ``SAME_AXIS`` of another is skipped), at ``FRACTIONS`` of the span and at the
-    necks (``necks``); only cuts that leave ``min_points`` on both sides."""
+    within ``SAME_AXIS`` of another is skipped), at the necks and steps (``necks``) and
+    at ``FRACTIONS`` of the span; only cuts that leave ``min_points`` on both sides, at
+    most ``MAX_CUTS`` (necks and steps first, then the middles, then the rest)."""
     if len(cloud) < 2 * min_points:
         return []
     centred = cloud - cloud.mean(axis=0)
@@ -232,12 +236,14 @@ def cuts(cloud, min_points: int) -> list[np.ndarray]:
     for axis in np.c_[principal, mvbb(cloud[::stride]).rotation].T:
         if all(abs(float(axis @ other)) < SAME_AXIS for other in axes):
             axes.append(axis)
-    out, seen = [], set()
+    ranked, seen = [], set()
     for axis in axes:
         along = centred @ axis
         lo, hi = np.quantile(along, [0.005, 0.995])
-        planes = [lo + f * (hi - lo) for f in FRACTIONS] + necks(centred, axis, lo, hi)
-        for plane in planes:
+        # necks and steps first, then the middle, then the quarters
+        planes = [(0, p) for p in necks(centred, axis, lo, hi)] + [
+            (1 + abs(f - 0.5), lo + f * (hi - lo)) for f in FRACTIONS]
+        for priority, plane in planes:
             below = along < plane
             count = int(below.sum())
             if min(count, len(cloud) - count) < min_points:
@@ -245,15 +251,18 @@ def cuts(cloud, min_points: int) -> list[np.ndarray]:
             signature = below.tobytes()
             if signature not in seen:
                 seen.add(signature)
-                out.append(below)
-    return out
+                ranked.append((priority, len(ranked), below))
+    return [below for _, _, below in sorted(ranked, key=lambda r: r[:2])[:MAX_CUTS]]
 
 
 def necks(centred, axis, lo: float, hi: float) -> list[float]:
-    """Positions along ``axis`` (unit (3,)) of a part's necks: of ``SLABS`` slabs between
-    ``lo`` and ``hi``, those whose cross-section (the area of their points' bounding
-    rectangle across the axis) is a local minimum and at most ``NECK`` times the largest
-    cross-section on each side; the ``NECKS_PER_AXIS`` narrowest, at their slab's centre."""
+    """Positions along ``axis`` (unit (3,)) of a part's necks and steps: of ``SLABS``
+    slabs between ``lo`` and ``hi``, those whose cross-section (the area of their points'
+    bounding rectangle across the axis) is a local minimum and at most ``NECK`` times the
+    largest cross-section on each side (the ``NECKS_PER_AXIS`` narrowest, at the slab's
+    centre), and the boundaries between neighbouring slabs whose cross-sections differ
+    by more than that factor (the ``NECKS_PER_AXIS`` sharpest: a lid on a body, a spout
+    out of its side, where no neck lies beyond)."""
     basis = np.linalg.svd(np.eye(3) - np.outer(axis, axis))[0][:, :2]  # (3, 2) across
     along, across = centred @ axis, centred @ basis
     edges = np.linspace(lo, hi, SLABS + 1)
@@ -263,13 +272,18 @@ def necks(centred, axis, lo: float, hi: float) -> list[float]:
         inside = across[slab == s]
         if len(inside) > 1:
             area[s] = float(np.prod(np.ptp(inside, axis=0)))
-    found = []
+    found, steps = [], []
     for s in range(1, SLABS - 1):
         left, right = area[:s].max(), area[s + 1:].max()
         if (area[s] <= area[s - 1] and area[s] <= area[s + 1]
                 and area[s] <= NECK * min(left, right)):
             found.append((area[s] / min(left, right), 0.5 * (edges[s] + edges[s + 1])))
-    return [position for _, position in sorted(found)[:NECKS_PER_AXIS]]
+    for s in range(SLABS - 1):
+        low, high = sorted((area[s], area[s + 1]))
+        if high > 0 and low <= NECK * high:
+            steps.append((low / high, edges[s + 1]))
+    return ([position for _, position in sorted(found)[:NECKS_PER_AXIS]]
+            + [position for _, position in sorted(steps)[:NECKS_PER_AXIS]])
 
 
 def _merged(points, parts: list[Part], scorer: Scorer, fit) -> list[Part]:

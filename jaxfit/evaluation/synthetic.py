@@ -70,6 +70,10 @@ def demo_cloud(shape="cylinder", *, count: int = 2000, outlier_ratio: float = 0.
     return points, model, truth
 
 
+#: The teapot's spout axis, from its base on the body's wall out to its tip.
+_SPOUT = np.array([np.cos(np.radians(30.0)), 0.0, np.sin(np.radians(30.0))])
+
+
 def _composites():
     """Objects made of touching primitives with known parameters (metres, z up)."""
     up = np.array([0.0, 0.0, 1.0])
@@ -89,11 +93,20 @@ def _composites():
                  Cylinder(np.array([0.0, 0.0, 0.145]), up, 0.01, 0.25),
                  Cone(np.array([0.0, 0.0, 0.37]), -up, np.radians(40.0), 0.1),
                  Sphere(np.array([0.0, 0.0, 0.39]), 0.02)],
+        # a round body with a lid on top, a spout rising at 30 deg on +x, a handle on -x
+        "teapot": [Cylinder(np.array([0.0, 0.0, 0.06]), up, 0.08, 0.12),
+                   Cylinder(np.array([0.0, 0.0, 0.13]), up, 0.04, 0.02),
+                   Cone(np.array([0.075, 0.0, 0.05]) + 0.07 * _SPOUT, -_SPOUT,
+                        np.arctan(0.02 / 0.07), 0.07),
+                   Box(np.array([-0.095, 0.0, 0.06]), np.eye(3), np.array([0.03, 0.015, 0.09]))],
     }
 
 
-#: Names of the built-in composite objects (``composite``; the CLI's ``demo --object``).
-COMPOSITES = tuple(_composites())
+#: Names of the built-in composite objects the demo and the batch benchmark cycle
+#: through (``composite``; the CLI's ``demo --object``). ``composite`` also builds the
+#: "teapot" (issue 17's test of a round body that must come out as one part), left out
+#: here so that those outputs stay as they were.
+COMPOSITES = ("mallet", "lollipop", "hammer", "lamp")
 
 
 def composite(name: str = "mallet", *, count: int = 20000, seed: int = 0):
