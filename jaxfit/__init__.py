@@ -4,19 +4,29 @@ import importlib
 import importlib.abc
 import importlib.util
 import sys
+import types
 
 from . import _cache
 from ._cache import compilation_cache_dir
 from ._checks import FitError
-from .batch import run_batch
-from .decomposition import Decomposition, Part, decompose
-from .detect import Detection, Scene, detect
 from .engine import Bounds, FitOptions, FitResult, Status, fit, fit_batch
-from .grasping import Grasps, ParallelJaw, grasps
-from .io import SourceTypeError, as_cloud, load_cloud, load_points
-from .normals import estimate_normals
 from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere, allclose
-from .warmup import warmup
+
+#: Public names imported from their module on first use (PEP 562 ``__getattr__``), not by
+#: ``import jaxfit``: a process that only fits skips their imports (docs/engine.md,
+#: "Compile cost, this round"). name -> module, relative to this package.
+LAZY = {
+    "run_batch": "batch",
+    "Decomposition": "decomposition", "Part": "decomposition", "decompose": "decomposition",
+    "Detection": "detect", "Scene": "detect", "detect": "detect",
+    "Grasps": "grasping", "ParallelJaw": "grasping", "grasps": "grasping",
+    "SourceTypeError": "io", "as_cloud": "io", "load_cloud": "io", "load_points": "io",
+    "estimate_normals": "normals",
+    "warmup": "warmup",
+}
+#: Subpackages and modules ``import jaxfit`` used to import, still given as attributes
+#: (``jaxfit.grasping.clears_support``): imported on first use too.
+SUBMODULES = frozenset({"batch", "decomposition", "grasping", "io", "normals"})
 
 __all__ = [
     "fit", "fit_batch", "FitOptions", "Bounds", "FitResult", "Status", "FitError", "decompose",
@@ -58,15 +68,34 @@ class _MovedFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 
 
 sys.meta_path.append(_MovedFinder())
-# The function ``decompose`` shadows its old module's name on the package; the module is
-# registered now so that a later ``import jaxfit.decompose`` does not replace the function.
-sys.modules[f"{__name__}.decompose"] = sys.modules[f"{__name__}.decomposition.psda"]
+
+
+class _Package(types.ModuleType):
+    """This package's module type: a public name (``LAZY``) that is also a moved module's
+    old name (the function ``decompose``, the module ``jaxfit.decompose``) stays the
+    public object when ``import jaxfit.decompose`` sets the module on the package."""
+
+    def __setattr__(self, name, value):
+        if name in LAZY and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
 
 
 def __getattr__(name):
-    if name in MOVED:
+    if name in LAZY:
+        value = getattr(importlib.import_module(f"{__name__}.{LAZY[name]}"), name)
+        globals()[name] = value
+        return value
+    if name in MOVED or name in SUBMODULES:
         return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(LAZY) | SUBMODULES)
 
 
 # Before any jit compiles: later processes load our kernels from disk (see _cache.py).

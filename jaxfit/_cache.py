@@ -317,6 +317,9 @@ class Stored:
         # compiled ahead) may make the same first call at once.
         self.ready: set = set()
         self.first_calls: dict = {}
+        # Signatures whose exported program makes no LAPACK call: its first call skips
+        # LAPACK's start-up (``without_lapack``).
+        self.lapack_free: set = set()
         functools.update_wrapper(self, fn)
 
     def __call__(self, *args, **kwargs):
@@ -361,10 +364,14 @@ class Stored:
                                                             tree)
         if kernel is self.jitted:
             return self.jitted(*args, **kwargs)
+        lapack = contextlib.nullcontext() if signature not in self.lapack_free else \
+            without_lapack()
         if signature not in self.unproven:
-            return kernel(*dyn_args, **dyn_kwargs)
+            with lapack:
+                return kernel(*dyn_args, **dyn_kwargs)
         try:  # the first call of a program read from disk
-            out = kernel(*dyn_args, **dyn_kwargs)
+            with lapack:
+                out = kernel(*dyn_args, **dyn_kwargs)
         except Exception:  # it loaded but does not compile or run (seen once: "Failed to
             # deserialize StableHLO"): never trusted again; the plain jit answers
             with contextlib.suppress(OSError):
@@ -408,8 +415,63 @@ class Stored:
             except Exception:  # (a real error in the call is raised by the jitted one)
                 return self.jitted
             _write(path, seal(blob, name, secret))
+        if not calls_lapack(exported):
+            self.lapack_free.add(signature)
         options = {"compiler_options": self.options} if self.options else {}
         return jax.jit(exported.call, **options)
+
+
+def calls_lapack(exported) -> bool:
+    """Whether an exported program may call LAPACK (its module names a ``lapack_`` custom
+    call target; True where the module cannot be read)."""
+    try:
+        return b"lapack" in exported.mlir_module_serialized
+    except Exception:
+        return True
+
+
+_lapack_skip = threading.local()  # .depth: how many ``without_lapack`` blocks this thread is in
+
+
+@contextlib.contextmanager
+def without_lapack():
+    """Within it (in this thread), lowering the call of an exported program does not start
+    LAPACK: ``jax.export`` starts it for every program it calls on the CPU, and its start
+    imports scipy.linalg (0.12-0.15 s CPU, a warm process's largest single cost besides
+    importing JAX; docs/engine.md, "Compile cost, this round"). Only for programs that
+    ``calls_lapack`` clears; a JAX without the hook (``_hook_lapack_start``) starts it
+    as before. A program that does call LAPACK starts it when it is lowered, as usual."""
+    if not _hook_lapack_start():
+        yield
+        return
+    _lapack_skip.depth = getattr(_lapack_skip, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _lapack_skip.depth -= 1
+
+
+@functools.cache
+def _hook_lapack_start() -> bool:
+    """Wrap ``jax._src.export._export._ensure_backends_initialized`` (jax 0.10.2: it starts
+    LAPACK for every exported program lowered for the CPU) so that it does nothing inside
+    ``without_lapack``; False (nothing hooked) where JAX has no such function."""
+    try:
+        from jax._src.export import _export
+
+        start = _export._ensure_backends_initialized
+        inspect.signature(start).bind(("cpu",))
+    except Exception:
+        return False
+
+    @functools.wraps(start)
+    def _ensure_backends_initialized(platforms, *args, **kwargs):
+        if getattr(_lapack_skip, "depth", 0):
+            return None
+        return start(platforms, *args, **kwargs)
+
+    _export._ensure_backends_initialized = _ensure_backends_initialized
+    return True
 
 
 def _takes(exported, leaves, tree) -> bool:

@@ -89,6 +89,24 @@ def spread_rows(n_valid, count: int):
     return jnp.where(n_valid >= count, spread, jnp.arange(count))
 
 
+def solve_spd(a, b):
+    """x (P,) with a x = b, a (P, P) symmetric positive definite (the damped normal
+    equations of an LM step), by Gauss-Jordan elimination without pivoting in a loop of P
+    steps: no LAPACK call (``jnp.linalg.solve`` is one on the CPU, and its presence
+    costs every process scipy's import; docs/engine.md, "Compile cost, this round"). A
+    pivot that round-off makes zero gives a non-finite x, which the step's test refuses."""
+    size = a.shape[0]
+    augmented = jnp.concatenate([a, b[:, None]], axis=1)  # (P, P + 1)
+    index = jnp.arange(size)
+
+    def eliminate(k, m):
+        row = m[k] / m[k, k]
+        column = jnp.where(index == k, 0.0, m[:, k])
+        return (m - column[:, None] * row[None, :]).at[k].set(row)
+
+    return jax.lax.fori_loop(0, size, eliminate, augmented)[:, size]
+
+
 def _refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds: int = 20,
                   steps: int = 10, bounds=None, normals=None, n_chunks=None,
                   rows: int | None = None, scorer: Scorer = DEFAULT_SCORER):
@@ -105,12 +123,19 @@ def _refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_round
     refused. With ``normals`` (B, 3), inliers are gated on them with
     ``bounds.normal_cos`` (see ``scoring.score``). ``n_chunks``: as in ``scoring.score``.
     Returns the refined theta, its cost and inlier count.
+
+    One program of few parts, since its XLA compile is a first fit's cost (docs/engine.md,
+    "Compile cost, this round"): the cloud is scored in one place (the loop's round 0
+    scores theta itself), each LM step evaluates the residuals and their Jacobian once (at
+    its candidate, kept as the next step's normal equations when accepted), and the
+    damped normal equations are solved by ``solve_spd``.
     """
     rows = spread_rows(n_valid, min(points.shape[0], LO_POINTS if rows is None else rows))
     live = rows < n_valid
     sub = points[rows]
     p = (sub[:, 0], sub[:, 1], sub[:, 2])
     gate = None if normals is None else (normals, bounds.normal_cos)
+    basis = jnp.eye(theta.size, dtype=theta.dtype)
 
     def agrees(th):  # the gate of ``score`` on the LM points, (S,) bool
         if gate is None:
@@ -119,53 +144,81 @@ def _refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_round
         _, slope = cls.residual_slope(th, p, (m[:, 0], m[:, 1], m[:, 2]), jnp)
         return jnp.abs(slope) >= gate[1]
 
-    def lm_step(carry):
-        th, lam, sse, weight, i, refusals = carry
+    def normal_equations(th, weight):
+        """The weighted residuals' squared sum, J^T J (P, P) and J^T r (P,) at th, J the
+        residuals' Jacobian through canonicalize (one JVP per parameter, the residuals
+        themselves evaluated once)."""
         # Through canonicalize: a step must not spend the length of an axis (or a
         # plane's normal), which canonicalize throws away; with it the cone's steps were
         # mostly refused and refinement stalled short of the least-squares fit (noisy
         # cones: median axis error 0.39 -> 0.17 deg).
-        resid = lambda t: cls.theta_residual(cls.canonicalize(t), p, jnp) * weight  # noqa: E731
-        r, jac = resid(th), jax.jacfwd(resid)(th)
-        normal = jac.T @ jac
-        damping = lam * (jnp.diag(jnp.diag(normal)) + 1e-9 * jnp.eye(th.size, dtype=th.dtype))
-        candidate = cls.canonicalize(th + jnp.linalg.solve(normal + damping, -(jac.T @ r)))
-        new_sse = jnp.sum(resid(candidate) ** 2)
+        # The chain rule by hand, a barrier between its two halves: XLA had fused the
+        # projection (the box's polar factor) into the per-point residuals and computed
+        # it again for every point (the box's refinement 3x slower).
+        flat, along = jax.vmap(lambda v: jax.jvp(cls.canonicalize, (th,), (v,)),
+                               out_axes=(None, 0))(basis)  # (P,), (P, P)
+        flat, along = jax.lax.optimization_barrier((flat, along))
+        resid = lambda t: cls.theta_residual(t, p, jnp) * weight  # noqa: E731
+        r, jac = jax.vmap(lambda v: jax.jvp(resid, (flat,), (v,)), out_axes=(None, 1))(along)
+        return jnp.sum(r * r), jac.T @ jac, jac.T @ r
+
+    def lm_step(carry):
+        # Step 0 only evaluates the round's start (its step is 0: J^T r is still 0).
+        th, sse, jtj, jtr, weight, lam, i, refusals = carry
+        damping = lam * (jnp.diag(jnp.diag(jtj)) + 1e-9 * basis)
+        candidate = cls.canonicalize(th + solve_spd(jtj + damping, -jtr))
+        candidate = jnp.where(i == 0, th, candidate)
+        new_sse, new_jtj, new_jtr = normal_equations(candidate, weight)
         better = jnp.isfinite(new_sse) & (new_sse < sse) & jnp.all(jnp.isfinite(candidate))
         if bounds is not None:
             better &= bounds.admits(cls, candidate)
+        better |= i == 0
         # A refused step raises the damping (a shorter, safer step next); an accepted
         # one that gained almost nothing means the round has converged.
         stale = jnp.where(better, jnp.where(new_sse < sse * (1.0 - LM_GAIN), 0, LM_REFUSALS),
                           refusals + 1)
-        return (jnp.where(better, candidate, th), jnp.where(better, lam * 0.3, lam * 10.0),
-                jnp.where(better, new_sse, sse), weight, i + 1, stale)
+        stale = jnp.where(i == 0, 0, stale)
+        keep = lambda new, old: jnp.where(better, new, old)  # noqa: E731
+        return (keep(candidate, th), keep(new_sse, sse), keep(new_jtj, jtj),
+                keep(new_jtr, jtr), weight, jnp.where(i == 0, lam, keep(lam * 0.3, lam * 10.0)),
+                i + 1, stale)
 
-    def stepping(carry):
-        return (carry[4] < steps) & (carry[5] < LM_REFUSALS)
-
-    def lo_round(carry):
-        th, cost, _, rounds = carry
+    def refit(th, k):
+        """Round k's candidate from th: LM steps or the closed-form fit on the points
+        near th (round 0: th itself, its steps not run)."""
         r = cls.theta_residual(th, p, jnp)
         weight = (live & (jnp.abs(r) < LO_WIDEN * threshold) & agrees(th)).astype(th.dtype)
-        if cls.least_squares is None:
-            init = (th, jnp.asarray(1e-3, th.dtype), jnp.sum((r * weight) ** 2), weight, 0, 0)
-            candidate = jax.lax.while_loop(stepping, lm_step, init)[0]
-        else:  # the same least-squares fit, in closed form
-            candidate = cls.canonicalize(cls.least_squares(sub, weight))
-        new_cost = score_one(cls, candidate, points, n_valid, threshold, gate, n_chunks, scorer)[0]
+        if cls.least_squares is not None:  # the same least-squares fit, in closed form
+            return jnp.where(k == 0, th, cls.canonicalize(cls.least_squares(sub, weight)))
+
+        def stepping(carry):
+            return (k > 0) & (carry[6] <= steps) & (carry[7] < LM_REFUSALS)
+
+        zero = jnp.zeros((th.size, th.size), th.dtype)
+        init = (th, jnp.asarray(jnp.inf, th.dtype), zero, zero[0], weight,
+                jnp.asarray(1e-3, th.dtype), 0, 0)
+        return jax.lax.while_loop(stepping, lm_step, init)[0]
+
+    def lo_round(carry):
+        # Round 0 scores theta itself; round k > 0 scores the k-th refit.
+        th, cost, count, _, k = carry
+        candidate = th if max_rounds == 0 else refit(th, k)
+        new_cost, new_count = score_one(cls, candidate, points, n_valid, threshold, gate,
+                                        n_chunks, scorer)
         better = new_cost < cost * (1.0 - LO_GAIN)
         if bounds is not None:
             better &= bounds.admits(cls, candidate)
-        return (jnp.where(better, candidate, th), jnp.where(better, new_cost, cost), better,
-                rounds + 1)
+        better |= k == 0
+        return (jnp.where(better, candidate, th), jnp.where(better, new_cost, cost),
+                jnp.where(better, new_count, count), better, k + 1)
 
     def going(carry):
-        return carry[2] & (carry[3] < max_rounds)
+        return carry[3] & (carry[4] <= max_rounds)
 
-    cost = score_one(cls, theta, points, n_valid, threshold, gate, n_chunks, scorer)[0]
-    theta, _, _, _ = jax.lax.while_loop(going, lo_round, (theta, cost, True, 0))
-    return (theta, *score_one(cls, theta, points, n_valid, threshold, gate, n_chunks, scorer))
+    init = (theta, jnp.asarray(jnp.inf, theta.dtype), jnp.asarray(0, jnp.int32),
+            jnp.asarray(True), 0)
+    theta, cost, count, _, _ = jax.lax.while_loop(going, lo_round, init)
+    return theta, cost, count
 
 
 # ----- host side ----------------------------------------------------------------------

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -78,6 +79,51 @@ def circle3(a, b, c):
     offset = (jnp.dot(u, u) * jnp.cross(v, w) + jnp.dot(v, v) * jnp.cross(w, u)) / denom
     radius = safe_norm(offset)
     return a + offset, normal, radius, valid & (radius < MAX_EXTENT)
+
+
+def inverse_transpose3(m, xp=jnp):
+    """inv(m).T of a (3, 3) matrix m: its cofactors (row i the cross product of rows i + 1
+    and i + 2) over its determinant; no LAPACK call (``xp``: jax.numpy or numpy). A
+    singular m gives inf or NaN, as an inverse would."""
+    # Rows and columns rolled, whole arrays at a time: as ``cross`` of rows or entry by
+    # entry, the box's refinement compiled XLA fusions by the dozen.
+    after, second = xp.roll(m, -1, axis=0), xp.roll(m, -2, axis=0)
+    cof = (xp.roll(after, -1, axis=1) * xp.roll(second, -2, axis=1)
+           - xp.roll(after, -2, axis=1) * xp.roll(second, -1, axis=1))
+    return cof / xp.sum(m[0] * cof[0])
+
+
+#: Cyclic Jacobi sweeps of ``smallest_eigenvector``: each squares the off-diagonal part
+#: (three sweeps from a diagonal-free start already reach float32's resolution).
+JACOBI_SWEEPS = 5
+
+
+def smallest_eigenvector(a):
+    """The unit eigenvector (3,) of the least eigenvalue of a symmetric (3, 3) matrix a
+    (JAX), by cyclic Jacobi rotations: no LAPACK call (``jnp.linalg.eigh`` is one on the
+    CPU). Sign arbitrary; for a repeated least eigenvalue any vector of its space."""
+
+    def rotate(m, v, i, j):
+        # The rotation in the (i, j) plane that zeroes m[i, j] (Golub & Van Loan 8.5.2).
+        tau = m[j, j] - m[i, i]
+        denominator = jnp.abs(tau) + jnp.sqrt(tau * tau + 4.0 * m[i, j] * m[i, j])
+        t = jnp.where(denominator > 0, 2.0 * m[i, j] * jnp.where(tau >= 0, 1.0, -1.0)
+                      / jnp.where(denominator > 0, denominator, 1.0), 0.0)
+        c = 1.0 / jnp.sqrt(1.0 + t * t)
+        s = t * c
+        e = jnp.eye(3, dtype=m.dtype)
+        rot = (e + (c - 1.0) * (jnp.outer(e[i], e[i]) + jnp.outer(e[j], e[j]))
+               + s * (jnp.outer(e[i], e[j]) - jnp.outer(e[j], e[i])))
+        return rot.T @ m @ rot, v @ rot
+
+    def sweep(_, state):
+        m, v = state
+        for i, j in ((0, 1), (0, 2), (1, 2)):
+            m, v = rotate(m, v, i, j)
+        return m, v
+
+    m, v = jax.lax.fori_loop(0, JACOBI_SWEEPS, sweep, (a, jnp.eye(3, dtype=a.dtype)))
+    return v[:, jnp.argmin(jnp.diagonal(m))]
 
 
 def frame(axis):

@@ -125,9 +125,11 @@ class Box(Model):
         # Nearest rotation to the refined normals (the polar factor), by Newton's
         # iteration X <- (X + X^-T) / 2: refinement differentiates through this, and the
         # SVD's derivative is undefined at a rotation (three equal singular values).
+        # The inverse's transpose is the cofactor matrix over the determinant: no LAPACK
+        # call (``linalg.inv`` is one on the CPU, 12 in the refinement's program).
         rot = theta[:9].reshape(3, 3)
         for _ in range(POLAR_STEPS):
-            rot = 0.5 * (rot + xp.linalg.inv(rot).T)
+            rot = 0.5 * (rot + g.inverse_transpose3(rot, xp))
         return xp.concatenate([rot.reshape(-1), theta[9:]])
 
     @classmethod

@@ -63,7 +63,7 @@ class Plane(Model):
         # least-squares plane in one step, where Levenberg-Marquardt takes several.
         centroid = weights @ points / jnp.sum(weights)
         spread = (points - centroid) * jnp.sqrt(weights)[:, None]
-        normal = jnp.linalg.eigh(spread.T @ spread)[1][:, 0]
+        normal = g.smallest_eigenvector(spread.T @ spread)  # (no LAPACK call)
         return jnp.concatenate([normal, -(normal @ centroid)[None]])
 
     @classmethod
