@@ -317,25 +317,29 @@ def capped_pairs(tree, points: np.ndarray, radius: float) -> np.ndarray:
 
 
 def pair_bound(points: np.ndarray, radius: float) -> float:
-    """An upper bound on the pairs of points (N, 3) within radius: every pair lies in
-    two neighbouring cubic cells of side radius, so it is at most the sum over cells of
-    its count times the count of its 27 cells, halved. Two bincount-sized passes; on the
-    scenes' surfaces about 3 times the true count, so that a cloud well within
-    ``PAIR_BUDGET`` needs no exact count (``count_neighbors`` cost twice the listing)."""
+    """An upper bound on the pairs of points (N, 3) within radius: every pair lies in one
+    cubic cell of side radius or in two neighbouring ones, so it is at most the pairs
+    within each cell plus, over the 13 neighbour offsets that count each pair of cells
+    once, the products of their counts. On the scenes' surfaces about 3 times the true
+    count, so that a cloud well within ``PAIR_BUDGET`` needs no exact count
+    (``count_neighbors`` cost twice the listing)."""
     cells = np.floor((points - points.min(axis=0)) / radius).astype(np.int64) + 1
     dims = cells.max(axis=0) + 2
     if float(np.prod(dims.astype(np.float64))) >= 2.0 ** 62:
         return np.inf  # (no exact int64 key: the caller counts exactly)
     keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
     cell, count = np.unique(keys, return_counts=True)
-    around = np.zeros(len(cell))
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            shifted = cell + (dx * dims[1] + dy) * dims[2]
-            for dz in (-1, 0, 1):
-                at = np.minimum(np.searchsorted(cell, shifted + dz), len(cell) - 1)
-                around += np.where(cell[at] == shifted + dz, count[at], 0)
-    return float(np.dot(count, around) - len(points)) / 2.0
+    count = count.astype(np.float64)
+    within = float(np.dot(count, count - 1.0)) / 2.0  # pairs inside one cell
+    # Pairs across two neighbouring cells: each of the 13 offsets with a positive first
+    # non-zero component counts every neighbouring pair of cells once.
+    for dx, dy, dz in ((1, -1, -1), (1, -1, 0), (1, -1, 1), (1, 0, -1), (1, 0, 0),
+                       (1, 0, 1), (1, 1, -1), (1, 1, 0), (1, 1, 1), (0, 1, -1), (0, 1, 0),
+                       (0, 1, 1), (0, 0, 1)):
+        shifted = cell + (dx * dims[1] + dy) * dims[2] + dz
+        at = np.minimum(np.searchsorted(cell, shifted), len(cell) - 1)
+        within += float(np.dot(count, np.where(cell[at] == shifted, count[at], 0.0)))
+    return within
 
 
 @dataclasses.dataclass(frozen=True)
@@ -413,7 +417,8 @@ class RadiusGraph:
         mark[rows] = True
         kept = np.flatnonzero(mark)
         position = np.cumsum(mark) - 1
-        _, labels = connected_components(self.adjacency[kept][:, kept], directed=False)
+        graph = self.adjacency if len(kept) == len(mark) else self.adjacency[kept][:, kept]
+        _, labels = connected_components(graph, directed=False)
         labels = labels[position[rows]]
         by_size = np.argsort(-np.bincount(labels), kind="stable")
         return np.argsort(by_size)[labels]
