@@ -423,14 +423,16 @@ class RadiusGraph:
         by_size = np.argsort(-np.bincount(labels), kind="stable")
         return np.argsort(by_size)[labels]
 
-    def near(self, owner: np.ndarray, count: int) -> np.ndarray:
-        """(count, N) bool: whether each point lies within the radius of (or is) a
-        point with ``owner`` (N,) equal to the row's index (-1: no owner)."""
+    def near(self, owner: np.ndarray, count: int, at=None) -> np.ndarray:
+        """(count, K) bool: whether each point ``at`` (K,) (indices into the cloud;
+        default all N) lies within the radius of (or is) a point with ``owner`` (N,)
+        equal to the row's index (-1: no owner)."""
         rows = self.inverse[owner >= 0]
         member = np.zeros((len(self.distinct), count), np.float32)
         member[rows, owner[owner >= 0]] = 1.0
+        asked = self.inverse if at is None else self.inverse[at]
         touching = (member > 0) | (self.adjacency @ member > 0)
-        return touching[self.inverse].T
+        return touching[asked].T
 
     def normals(self, k: int) -> np.ndarray:
         """(N, 3) unoriented normals of the cloud's points: ``pair_normals`` over each
@@ -811,14 +813,18 @@ def _settled(found, cloud, threshold, graph: RadiusGraph):
     owner = np.full(len(cloud), -1)
     for i, d in enumerate(found):
         owner[d.indices] = i
-    every = np.arange(len(cloud))
+    # Only points within threshold of some model can be assigned (every detection's
+    # points are: a support is within threshold of its model); the others keep -1.
+    open_ = np.flatnonzero(model_dist.min(axis=0) < threshold)
+    model_dist = model_dist[:, open_]
+    every = np.arange(len(open_))
     for _ in range(SETTLE_ROUNDS):
-        dist = np.where(graph.near(owner, len(found)), model_dist, np.inf)
+        dist = np.where(graph.near(owner, len(found), open_), model_dist, np.inf)
         new = np.argmin(dist, axis=0)
         new[dist[new, every] >= threshold] = -1
-        if np.array_equal(new, owner):
+        if np.array_equal(new, owner[open_]):
             break
-        owner = new
+        owner[open_] = new
     return [dataclasses.replace(d, indices=np.flatnonzero(owner == i))
             for i, d in enumerate(found)]
 
