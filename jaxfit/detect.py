@@ -67,7 +67,7 @@ DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")
 #: Most passes of the final assignment (see ``_settled``); scenes settle in 2-4.
 SETTLE_ROUNDS = 8
 #: Neighbours of a point's estimated normal where fewer than ``normals.PAIR_LEAST``
-#: points lie within the connectivity radius (see ``RadiusGraph.normals``).
+#: points lie within the connectivity radius (see ``estimate_normals``).
 NORMAL_K = 16
 #: Most support points a winner's least-squares refit reads (``_polished``): LO's own
 #: ``LO_POINTS``; the accuracy is set by the noise long before.
@@ -434,13 +434,6 @@ class RadiusGraph:
         touching = (member > 0) | (self.adjacency @ member > 0)
         return touching[asked].T
 
-    def normals(self, k: int) -> np.ndarray:
-        """(N, 3) unoriented normals of the cloud's points: ``pair_normals`` over each
-        distinct point's neighbours within the radius (its k nearest where they are
-        fewer than ``normals.PAIR_LEAST``)."""
-        return pair_normals(self.distinct, self.pairs, min(k, len(self.distinct)),
-                            self.tree)[self.inverse]
-
 
 def _pairs(tree, points: np.ndarray, radius: float, allowance: float = 1.0) -> np.ndarray:
     """(E, 2) int64 pairs of points (M, 3) (distinct; ``tree`` over them) within radius,
@@ -465,6 +458,16 @@ def _csr(rows, columns, size: int, dtype):
     from scipy.sparse import coo_matrix
 
     return coo_matrix((np.ones(len(rows), dtype), (rows, columns)), shape=(size, size)).tocsr()
+
+
+def estimate_normals(graph: RadiusGraph, k: int = NORMAL_K) -> np.ndarray:
+    """(N, 3) unoriented normals of the graph's cloud, as detect estimates them when it
+    is given none: ``normals.pair_normals`` over each distinct point's neighbours within
+    the radius (its k nearest where fewer than ``normals.PAIR_LEAST`` are that near),
+    one per distinct point, shared by its copies. (Not ``jaxfit.estimate_normals``,
+    which takes points and queries k nearest neighbours for every point.)"""
+    return pair_normals(graph.distinct, graph.pairs, min(k, len(graph.distinct)),
+                        graph.tree)[graph.inverse]
 
 
 def components(points: np.ndarray, radius: float) -> np.ndarray:
@@ -611,7 +614,7 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
     fit_points = _checks.positive(fit_points, "fit_points", integer=True)
     graph = RadiusGraph.of(cloud, connect)
     if normals is None:
-        normals = graph.normals(NORMAL_K)
+        normals = estimate_normals(graph)
     if "options" not in fit_options:  # (a FitOptions given whole is taken as it is)
         fit_options = {**CANDIDATE_OPTIONS, **fit_options}
     context = _Context(cloud, normals, threshold, float(np.cos(np.radians(max_angle))),
