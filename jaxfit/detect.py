@@ -613,6 +613,9 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
                        tolerance, fit_options)
     fit_points = _checks.positive(fit_points, "fit_points", integer=True)
     graph = RadiusGraph.of(cloud, connect)
+    if len(graph.distinct) < 3:  # (no primitive fits two points: nothing to find)
+        return Scene([], np.arange(len(cloud)), threshold, graph.spacing, graph.radius,
+                     cloud)
     if normals is None:
         normals = estimate_normals(graph)
     if "options" not in fit_options:  # (a FitOptions given whole is taken as it is)

@@ -117,3 +117,13 @@ def test_isolated_points_take_their_nearest_neighbours_normal():
     np.testing.assert_allclose(np.abs(np.sum(normals * reference, axis=1)), 1.0, atol=1e-9)
     with pytest.raises(ValueError, match="at least 3 distinct points"):
         pair_normals(points[:2], np.empty((0, 2), np.int64))
+
+
+def test_two_distinct_points_give_an_empty_scene():
+    """Copies of two points (with a threshold given, so they do not count as one point)
+    hold no primitive: an empty scene, every point unassigned, and no fit is run."""
+    import jaxfit
+
+    points = np.repeat(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), 20, axis=0)
+    scene = jaxfit.detect(points, threshold=0.01, key=0)
+    assert scene.shapes == [] and len(scene.unassigned) == len(points)
