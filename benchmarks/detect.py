@@ -306,15 +306,96 @@ def _side_markdown(rows, meta) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: The stages ``stages`` times: (label, module, attribute path) for this round's code,
+#: and for the code before it (5dab3bd), which had no RadiusGraph.
+_STAGES = [("neighbour structure (tree, spacing, pairs)", "jaxfit.detect", "RadiusGraph.of"),
+           ("normals", "jaxfit.detect", "estimate_normals"),
+           ("groups", "jaxfit.detect", "_groups"), ("fits", "jaxfit.detect", "fit_batch"),
+           ("supports: compatible points", "jaxfit.detect", "_compatible"),
+           ("supports: largest component", "jaxfit.detect", "_largest"),
+           ("winners' refit", "jaxfit.engine.refine", "final_refit"),
+           ("final assignment", "jaxfit.detect", "_settled")]
+_STAGES_BEFORE = [("normals", "jaxfit.detect", "estimate_normals"),
+                  ("spacing", "jaxfit.detect", "median_spacing"),
+                  ("groups", "jaxfit.detect", "_groups"), ("fits", "jaxfit.detect", "fit"),
+                  ("supports (compatible points and components)", "jaxfit.detect", "support"),
+                  ("final assignment", "jaxfit.detect", "_settled")]
+
+
+def stages(name: str, runs: int = 3) -> dict:
+    """Process CPU seconds per warm detect call by stage (``time.process_time`` around
+    each stage function), on peers' five synthetic scenes and on the two Fit4CAD scans,
+    ``runs`` calls of each; written to stages_<name>.json. Runs on the jaxfit it
+    imports: ``PYTHONPATH=<a worktree> python benchmarks/detect.py --stages before``
+    times that worktree's detect (the stage functions of 5dab3bd are known too)."""
+    import collections
+    import importlib
+    import sys
+
+    from benchmarks import peers
+
+    module = importlib.import_module("jaxfit.detect")
+    spent, calls = collections.defaultdict(float), collections.Counter()
+
+    def wrapped(owner, attr, label):
+        inner = getattr(owner, attr)
+
+        def timed(*args, **kwargs):
+            start = time.process_time()
+            try:
+                return inner(*args, **kwargs)
+            finally:
+                spent[label] += time.process_time() - start
+                calls[label] += 1
+        setattr(owner, attr, timed)
+
+    for label, where, path in (_STAGES if hasattr(module, "RadiusGraph") else _STAGES_BEFORE):
+        owner, attr = importlib.import_module(where), path
+        if "." in path:
+            first, attr = path.split(".")
+            owner = getattr(owner, first)
+        wrapped(owner, attr, label)
+    sets = {"synthetic": [peers.synthetic_scene(seed)[0] for seed in range(peers.SCENES)],
+            "Fit4CAD": [load_fit4cad(n)[0] for n in ("PC33", "PC21")
+                        if (DATA / f"{n}.txt").exists()]}
+    out = {"python": sys.version.split()[0], "runs": runs}
+    for key, clouds in sets.items():
+        for points in clouds:
+            module.detect(points, key=0)  # (warm)
+        spent.clear()
+        calls.clear()
+        start = time.process_time()
+        for _ in range(runs):
+            for points in clouds:
+                module.detect(points, key=0)
+        count = runs * len(clouds)
+        total = (time.process_time() - start) / count
+        rows = {label: {"ms": 1e3 * spent[label] / count, "calls": calls[label] / count}
+                for label in spent}
+        rows["other"] = {"ms": 1e3 * total - sum(r["ms"] for r in rows.values()), "calls": 0}
+        out[key] = {"total_ms": 1e3 * total, "stages": rows}
+        print(f"{key}: {1e3 * total:.0f} ms CPU per call", flush=True)
+        for label, r in rows.items():
+            print(f"  {label:46s} {r['ms']:6.1f} ms {r['calls']:6.1f} calls", flush=True)
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / f"stages_{name}.json").write_text(json.dumps(out, indent=1))
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cgal", action="store_true",
                         help="only the scenes side by side with CGAL (cgal.md, cgal.json)")
     parser.add_argument("--repeats", type=int, default=5,
                         help="timed warm runs per method and scene with --cgal")
+    parser.add_argument("--stages", metavar="NAME",
+                        help="only the CPU time by stage (stages_NAME.json)")
     args = parser.parse_args(argv)
     if args.cgal:
         side_by_side(args.repeats)
+        return
+    if args.stages:
+        stages(args.stages)
         return
     real_rows = [real(name) for name in ("PC33", "PC21")]
     synthetic_rows = synthetic()
