@@ -12,6 +12,11 @@ points (N, 3) as a set of primitives, one per part.
 
 Departures from the thesis, each for an object the thesis's rule got wrong:
 
+- The whole object first (``_whole_object``): every primitive is fitted to all the
+  points and scored two-sided (``measure.Scorer``); one that explains the object within
+  the noise of a fit (``_explains``) is the one part, and no box is cut (an exact ball
+  was cut into three slabs, fitted and merged back, 8x slower).
+
 - Reassignment (``reassign`` rounds after step 3): every point goes to the nearest
   part's best fitted primitive (cylinders and cones first grown along their surface,
   ``Model.axial_bounds``), parts that changed are fitted again, parts left tiny or of one
@@ -23,7 +28,9 @@ Departures from the thesis, each for an object the thesis's rule got wrong:
 - Hollow parts (``HOLLOW``, ``HOLLOW_DEPTH``): a part with an inner wall is fitted and
   judged on its outside; one-sided, a surface midway between two walls is nearest.
 
-Measurements and the cases behind each departure: docs/decomposition.md.
+``decompose(method="measured")`` replaces steps 1-3 by the two-sided split search of
+``jaxfit.decomposition.measured``. Measurements and the cases behind each departure:
+docs/decomposition.md.
 """
 
 from __future__ import annotations
@@ -430,13 +437,14 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
                            max_leaves=max_parts, root=root)
     groups = [tree.nodes[i].indices for i in tree.leaves]
     say(f"box decomposition: {len(groups)} parts ({time.perf_counter() - started:.2f} s)")
+    box_of = _BoxCache(points, {n.indices.tobytes(): n.box for n in tree.nodes})
     fit = functools.partial(_fit_parts, points, classes=classes, bounds=tree.nodes[0].box,
                             threshold_fraction=threshold_fraction, key=key, seed=seed,
-                            say=say, started=started)
+                            say=say, started=started, box_of=box_of)
     parts = fit(groups)
     for _ in range(reassign if len(parts) > 1 else 0):
         regrouped, kinds = _regroup(points, parts, threshold_fraction, max(5, min_points // 2))
-        regrouped = _merge(points, regrouped, kinds, tree.nodes[0].box, gain)
+        regrouped = _merge(points, regrouped, kinds, tree.nodes[0].box, gain, box_of)
         # A part whose points did not change keeps its fits: only the others are refitted.
         known = {p.indices.tobytes(): p for p in parts}
         changed = [g for g in regrouped if g.tobytes() not in known]
@@ -548,7 +556,23 @@ def _regroup(points, parts, threshold_fraction, smallest):
         alive = np.delete(alive, np.argmin(sizes))
 
 
-def _merge(points, groups, kinds, root: Box, gain: float):
+class _BoxCache:
+    """``mvbb(points[group])`` of index groups (ascending), each computed once: the tree's
+    boxes are its leaves' MVBBs, and a reassignment round's groups recur in ``_merge``
+    and ``_fit_parts`` (the MVBB is most of the PSDA's time; the same points give the
+    same box, so the parts are unchanged)."""
+
+    def __init__(self, points, known: dict):
+        self.points, self.known = points, dict(known)
+
+    def __call__(self, group) -> Box:
+        key = np.asarray(group).tobytes()
+        if key not in self.known:
+            self.known[key] = mvbb(self.points[group])
+        return self.known[key]
+
+
+def _merge(points, groups, kinds, root: Box, gain: float, box_of=None):
     """Merge, pair by pair, parts claimed by the same kind of primitive that have come to
     overlap: the box around both is larger than the larger of their boxes by less than
     BoxDecomposition's split must save (``(1 - gain)`` of the root's volume). So the
@@ -556,18 +580,20 @@ def _merge(points, groups, kinds, root: Box, gain: float):
     become one part again. Parts of different kinds stay apart (they are different
     primitives, even if they cross), and so do neighbours that merely touch (the plain
     inverse of the split test merged too much: docs/decomposition.md). ``groups`` are
-    index arrays into ``points`` (N, 3), ``kinds`` their primitives' names."""
+    index arrays into ``points`` (N, 3), ``kinds`` their primitives' names; ``box_of``
+    gives a group's MVBB (default: computed)."""
+    box_of = box_of or _BoxCache(points, {})
     volume = functools.partial(box_volume, floor=volume_floor(root))
     need = (1.0 - gain) * volume(root)
     groups = list(groups)
-    sizes = [volume(mvbb(points[g])) for g in groups]
+    sizes = [volume(box_of(g)) for g in groups]
     while len(groups) > 1:
         pairs = [(i, j) for i, j in itertools.combinations(range(len(groups)), 2)
                  if kinds[i] == kinds[j]]
         if not pairs:
             return groups
         unions = [np.union1d(groups[i], groups[j]) for i, j in pairs]
-        whole = [volume(mvbb(points[u])) for u in unions]
+        whole = [volume(box_of(u)) for u in unions]
         grown = [w - max(sizes[i], sizes[j]) for (i, j), w in zip(pairs, whole, strict=True)]
         best = int(np.argmin(grown))
         if grown[best] > need:
@@ -613,11 +639,12 @@ def _threshold(box: Box, fraction: float) -> float:
 
 
 def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed, say,
-               started):
+               started, box_of=None):
     """Fitting and evaluation phases: every primitive on every part (one fit_batch per
-    primitive), and the candidate nearest to the part's points wins."""
+    primitive), and the candidate nearest to the part's points wins. ``box_of`` gives a
+    group's MVBB (default: computed)."""
     clouds = [points[g] for g in groups]
-    boxes = [mvbb(cloud) for cloud in clouds]
+    boxes = [(box_of or _BoxCache(points, {}))(g) for g in groups]
     thresholds = [_threshold(b, threshold_fraction) for b in boxes]
     clouds = [_outside(cloud, t) for cloud, t in zip(clouds, thresholds, strict=True)]
     # RANSAC needs no more than a few thousand points of a part to find its primitive;
