@@ -1,8 +1,10 @@
 """Cold start: whole-process wall time of "load a cloud, fit one sphere, print", and the
 first-call compile time of each primitive.
 
-Every measurement is a fresh interpreter (``subprocess``), timed from launch to exit, on the
-same 10,000-point sphere cloud with 30 % outliers saved as ``.npy``:
+Every measurement is a fresh interpreter (``subprocess``), timed from launch to exit (wall,
+and CPU: user and system), on the same 10,000-point sphere cloud with 30 % outliers saved
+as ``.npy``, beside a bare JAX process (``import jax; jax.numpy.zeros(1)``, the yardstick
+of issue 18's goal):
 - jaxfit from Python, first process (an empty compilation-cache folder: it compiles and
   fills the cache), second process (the folder the first one filled), and with the cache
   off (``JAXFIT_CACHE=0``);
@@ -33,6 +35,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -159,12 +162,22 @@ def _env(cache: str | None) -> dict:
 
 def wall(argv, env) -> tuple[float, str]:
     """Seconds from launch to exit of a fresh process, and its output."""
+    seconds, _, out = timed(argv, env)
+    return seconds, out
+
+
+def timed(argv, env) -> tuple[float, float, str]:
+    """Wall seconds from launch to exit of a fresh process, its CPU seconds (user and
+    system, children included), and its output."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=600)
     seconds = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise RuntimeError(f"{argv[:3]} failed:\n{proc.stderr}")
-    return seconds, proc.stdout
+    cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    return seconds, cpu, proc.stdout
 
 
 def has_pyransac() -> bool:
@@ -173,17 +186,25 @@ def has_pyransac() -> bool:
     return importlib.util.find_spec("pyransac3d") is not None
 
 
-def whole_process(cloud: Path, work: Path, repeats: int) -> dict[str, list[float]]:
-    """Each method's wall times over ``repeats`` turns; cold runs get an empty folder."""
+#: The whole-process goal's yardstick (issue 18): a bare JAX process.
+BARE_JAX = "bare JAX: import jax; jax.numpy.zeros(1)"
+
+
+def whole_process(cloud: Path, work: Path, repeats: int
+                  ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+    """Each method's wall and CPU times over ``repeats`` turns; cold runs get an empty
+    folder."""
     py = sys.executable
     script = {"jaxfit": JAXFIT_PY, "pyransac": PYRANSAC, "reference": REFERENCE}
     script = {k: v.format(threshold=THRESHOLD) for k, v in script.items()}
     cli = [py, "-m", "jaxfit", "fit", str(cloud), "--shape", "sphere",
            "--threshold", str(THRESHOLD)]
     times: dict[str, list[float]] = {}
+    cpus: dict[str, list[float]] = {}
     for turn in range(repeats):
         py_cache, cli_cache = str(work / f"py-{turn}"), str(work / f"cli-{turn}")
         runs = [  # (label, argv, cache folder): a "second" run reuses its turn's "first"
+            (BARE_JAX, [py, "-c", "import jax; jax.numpy.zeros(1)"], None),
             ("jaxfit Python, first process (empty cache)", [py, "-c", script["jaxfit"],
                                                             str(cloud)], py_cache),
             ("jaxfit Python, second process (warm cache)", [py, "-c", script["jaxfit"],
@@ -199,11 +220,12 @@ def whole_process(cloud: Path, work: Path, repeats: int) -> dict[str, list[float
                      ("pyRANSAC-3D, adaptive stop", [py, "-c", script["pyransac"],
                                                      str(cloud), "adaptive"], None)]
         for label, argv, cache in runs:
-            seconds, _ = wall(argv, _env(cache))
+            seconds, cpu, _ = timed(argv, _env(cache))
             times.setdefault(label, []).append(seconds)
+            cpus.setdefault(label, []).append(cpu)
         print(f"turn {turn}: " + ", ".join(f"{k.split(',')[0]} {v[-1]:.2f}"
                                            for k, v in times.items()), flush=True)
-    return times
+    return times, cpus
 
 
 def first_calls(work: Path, repeats: int) -> list[dict]:
@@ -320,13 +342,21 @@ def warmup_table(rows) -> str:
     return "\n".join(lines)
 
 
-def process_table(times) -> str:
+def process_table(times, cpus=None) -> str:
+    """Whole-process rows: wall medians, their spread and ratios (to pyRANSAC-3D, and to
+    bare JAX where it was run), and CPU medians where they were measured."""
+    cpus = cpus or {}
     base = statistics.median(times.get("pyRANSAC-3D, 1000 iterations", [np.nan]))
+    bare = statistics.median(times.get(BARE_JAX, [np.nan]))
+    bare_cpu = statistics.median(cpus.get(BARE_JAX, [np.nan]))
     lines = ["| process: load .npy, fit one sphere, print | median s | min s | max s "
-             "| ÷ pyRANSAC-3D (1000 it) |", "|---|---|---|---|---|"]
+             "| ÷ pyRANSAC-3D (1000 it) | ÷ bare JAX | CPU s | CPU ÷ bare JAX |",
+             "|---|---|---|---|---|---|---|---|"]
     for label, t in times.items():
         med = statistics.median(t)
-        lines.append(f"| {label} | {med:.2f} | {min(t):.2f} | {max(t):.2f} | {med / base:.2f} |")
+        cpu = statistics.median(cpus[label]) if label in cpus else np.nan
+        lines.append(f"| {label} | {med:.2f} | {min(t):.2f} | {max(t):.2f} | {med / base:.2f} "
+                     f"| {med / bare:.2f} | {cpu:.2f} | {cpu / bare_cpu:.2f} |")
     return "\n".join(lines)
 
 
@@ -387,6 +417,7 @@ def main(argv=None):
         parser.error(f"unknown sections {sorted(unknown)}; expected among {SECTIONS}")
     path = RESULTS / "coldstart.json"
     results = json.loads(path.read_text()) if path.exists() else {}
+    load_before = os.getloadavg()[0]  # (the 2-core machine is shared: say how busy it was)
     work = Path(tempfile.mkdtemp(prefix="jaxfit-coldstart-"))
     try:
         if "process" in sections:
@@ -396,7 +427,8 @@ def main(argv=None):
             if not has_pyransac():
                 print("pyRANSAC-3D is not installed (pip install '.[bench]'): its rows are "
                       "skipped")
-            results["whole_process_seconds"] = whole_process(cloud, work, args.repeats)
+            results["whole_process_seconds"], results["whole_process_cpu_seconds"] = \
+                whole_process(cloud, work, args.repeats)
         if "first-call" in sections:
             results["first_call"] = first_calls(work, args.first_call_repeats)
         if "programs" in sections:
@@ -411,7 +443,8 @@ def main(argv=None):
     meta.update({"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
                  "cpus": os.cpu_count(), "python": platform.python_version(),
                  "cloud": "sphere, 10,000 points, 30 % outliers, .npy",
-                 "threshold": THRESHOLD})
+                 "threshold": THRESHOLD,
+                 "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)]})
     meta.setdefault("repeats_by_section", {}).update(
         {name: args.repeats if name == "process" else args.first_call_repeats
          for name in sections})
@@ -421,7 +454,8 @@ def main(argv=None):
     parts = []
     if "whole_process_seconds" in results:
         parts += ["## Whole process (median of repeats)",
-                  process_table(results["whole_process_seconds"])]
+                  process_table(results["whole_process_seconds"],
+                                results.get("whole_process_cpu_seconds"))]
     if "first_call" in results:
         parts += ["## First call per primitive (fresh process, medians)",
                   first_call_table(results["first_call"])]

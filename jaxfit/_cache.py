@@ -24,6 +24,10 @@ keyed by everything it depends on (jaxfit's source, the JAX versions, the device
 numeric settings, ``XLA_FLAGS``, the call's static values and argument shapes). Files are
 written to a temporary name and renamed into place.
 
+A stored program that makes no LAPACK call is first called inside ``without_lapack``:
+``jax.export`` starts LAPACK (importing scipy.linalg) for every program it calls on the
+CPU, which had been a warm process's largest cost after importing JAX itself.
+
 Trust contract (jaxfit runs what it reads there):
 
 - the folder must belong to the user and not be writable by group or others (POSIX), else
