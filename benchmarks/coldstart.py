@@ -22,7 +22,9 @@ off, first process (empty folder) and second process.
 
 Then, per primitive, the programs of a cold first fit (each one's trace, lowering and
 compile seconds from ``jax_log_compiles``), with the refinement compiled ahead in a thread
-or in turn; and ``jaxfit.warmup()`` in one and two threads.
+or in turn; each of those programs compiled again alone from the fit's own arguments
+(``sizes``: process CPU per phase, the optimised program's size and LAPACK calls, its run
+time); and ``jaxfit.warmup()`` in one and two threads.
 
 Run: ``python -m benchmarks.coldstart [--repeats 5] [--sections process,first-call,...]``.
 Writes ``benchmarks/results/coldstart.json``, ``coldstart.md`` and ``coldstart.png``
@@ -146,6 +148,51 @@ for thread, line in lines:
     label = last.get(thread, name) if name == "call" else name
     programs.append({"program": label, "phase": kind, "seconds": seconds, "thread": thread})
 print(json.dumps({"first": first, "cpu": cpu, "programs": programs}))
+"""
+
+
+# Each stored program a first fit calls (cloud keys, kernel, refinement), compiled again
+# alone with JAX's AOT API from the fit's own arguments: CPU seconds of each phase, the
+# optimised program's size, its LAPACK calls and its run time. Cache off (every program
+# is the plain jitted one), refinement compiled in turn.
+SIZES = r"""
+import json, re, statistics, sys, time
+import jax
+import jaxfit
+import jaxfit.engine.loop as loop
+from jaxfit import _cache
+from jaxfit.evaluation.synthetic import demo_cloud
+loop.COMPILE_AHEAD = False
+calls = {}
+original = _cache.Stored.__call__
+def record(self, *args, **kwargs):
+    calls.setdefault(self.name, (self, args, kwargs))
+    return original(self, *args, **kwargs)
+_cache.Stored.__call__ = record
+points, _, _ = demo_cloud(sys.argv[1], count=2000, outlier_ratio=0.3, seed=0)
+jaxfit.fit(points, sys.argv[1], key=0)
+out = {}
+for name, (stored, args, kwargs) in calls.items():
+    jax.clear_caches()
+    cpu = [time.process_time()]
+    traced = stored.jitted.trace(*args, **kwargs); cpu.append(time.process_time())
+    lowered = traced.lower(); cpu.append(time.process_time())
+    compiled = lowered.compile(); cpu.append(time.process_time())
+    text = compiled.as_text()
+    dyn = [a for i, a in enumerate(args) if i not in stored.static_positions]
+    dyn_kw = {k: v for k, v in kwargs.items() if k not in stored.static_names}
+    jax.block_until_ready(compiled(*dyn, **dyn_kw))
+    runs = []
+    for _ in range(15):
+        start = time.perf_counter()
+        jax.block_until_ready(compiled(*dyn, **dyn_kw))
+        runs.append(time.perf_counter() - start)
+    out[name.rsplit(".", 1)[-1]] = {
+        "trace": cpu[1] - cpu[0], "lower": cpu[2] - cpu[1], "compile": cpu[3] - cpu[2],
+        "hlo_lines": text.count("\n"), "fusions": text.count(" fusion("),
+        "lapack_calls": len(re.findall(r'custom_call_target="lapack', text)),
+        "run_ms": 1e3 * statistics.median(runs)}
+print(json.dumps(out))
 """
 
 
@@ -286,6 +333,34 @@ def program_costs(work: Path, repeats: int) -> list[dict]:
     return rows
 
 
+def program_sizes(repeats: int) -> list[dict]:
+    """Per primitive, each program of a first fit compiled alone (``SIZES``), in a fresh
+    process with the cache off: medians over ``repeats`` processes."""
+    rows = []
+    for shape in SHAPES:
+        found = []
+        for _ in range(repeats):
+            _, out = wall([sys.executable, "-c", SIZES, shape], _env(None))
+            found.append(json.loads(out.strip().splitlines()[-1]))
+        for program in found[0]:
+            rows.append({"shape": shape, "program": program, "runs": len(found),
+                         **{k: statistics.median(f[program][k] for f in found)
+                            for k in found[0][program]}})
+        print(f"{shape}: " + ", ".join(f"{r['program']} {r['compile']:.2f} s"
+                                       for r in rows if r["shape"] == shape), flush=True)
+    return rows
+
+
+def sizes_table(rows) -> str:
+    lines = ["| shape | program | trace CPU s | lower CPU s | XLA compile CPU s | HLO lines "
+             "| fusions | LAPACK calls | run ms |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['shape']} | `{r['program']}` | {r['trace']:.2f} | {r['lower']:.2f} "
+                     f"| {r['compile']:.2f} | {r['hlo_lines']:g} | {r['fusions']:g} "
+                     f"| {r['lapack_calls']:g} | {r['run_ms']:.2f} |")
+    return "\n".join(lines)
+
+
 WARMUP = """
 import json, sys, time
 cpu, start = time.process_time(), time.perf_counter()
@@ -401,7 +476,7 @@ def plot(times, rows, path):
     print(f"wrote {path}")
 
 
-SECTIONS = ("process", "first-call", "programs", "warmup")
+SECTIONS = ("process", "first-call", "programs", "sizes", "warmup")
 
 
 def main(argv=None):
@@ -433,6 +508,8 @@ def main(argv=None):
             results["first_call"] = first_calls(work, args.first_call_repeats)
         if "programs" in sections:
             results["programs"] = program_costs(work, args.first_call_repeats)
+        if "sizes" in sections:
+            results["sizes"] = program_sizes(args.first_call_repeats)
         if "warmup" in sections:
             results["warmup"] = warmup_costs(work, args.first_call_repeats)
     finally:
@@ -463,6 +540,9 @@ def main(argv=None):
         parts += ["## Programs of a first fit (fresh process, empty cache, 2,000 points, "
                   "medians): the refinement compiled ahead in a thread, or in turn",
                   program_table(results["programs"])]
+    if "sizes" in results:
+        parts += ["## Each program of a first fit compiled alone (AOT, cache off, 2,000 points, "
+                  "process CPU, medians)", sizes_table(results["sizes"])]
     if "warmup" in results:
         parts += ["## `jaxfit.warmup()`: every shape at the default buckets (fresh process)",
                   warmup_table(results["warmup"])]
