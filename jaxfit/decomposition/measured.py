@@ -39,7 +39,7 @@ from ..engine import fit_batch
 from ..shapes import Box
 from .boxdecomp import BoxNode, BoxTree, _principal_axes, mvbb
 from .measure import Scorer
-from .psda import MAX_FIT_POINTS, Candidate, Part, _grown, _threshold
+from .parts import MAX_FIT_POINTS, Candidate, Part, _grown, _threshold, fits
 
 __all__ = ["MAX_PARTS", "SPLIT_MARGIN", "FRACTIONS", "split_greedily", "cuts", "necks"]
 
@@ -371,7 +371,7 @@ def _fit_groups(points, groups, boxes=None, *, classes, scorer: Scorer, threshol
     found = [{"mvbb": Candidate(b, *_two(scorer, b, c))}
              for b, c in zip(boxes, clouds, strict=True)]
     for cls in classes:
-        results = fit_batch(samples, cls, thresholds=thresholds, key=key, skip_failures=True)
+        results = fits(samples, cls, thresholds, key)
         for candidates, result, cloud in zip(found, results, clouds, strict=True):
             if result is not None:
                 candidates[cls.name] = Candidate(result.model,

@@ -47,24 +47,14 @@ from pathlib import Path
 import numpy as np
 
 from .. import _checks
-from ..engine import fit_batch
 from ..shapes import Box, Model, mass_properties, trimesh_scene
-from ..shapes._base import short
 from .boxdecomp import BoxNode, BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import shallow
 from .measure import EXPLAINED, Scorer
+from .parts import MAX_FIT_POINTS, THRESHOLD_FRACTION, Candidate, Part, _grown, _threshold, fits
 
 #: The primitives tried on every part by default: the thesis's four.
 SHAPES = ("sphere", "cylinder", "cone", "box")
-#: Part threshold: this fraction of the diagonal of the part's bounding box. Wider than
-#: for a single fit, as in the thesis: a part is only approximately a primitive.
-THRESHOLD_FRACTION = 0.02
-#: Points of a part handed to RANSAC (a random subset when the part is larger).
-MAX_FIT_POINTS = 2048
-#: A fitted candidate whose surface reaches further out of the object's bounding box
-#: (the root MVBB) than this fraction of the box's diagonal cannot win its part, nor
-#: (but see ``OWNER_SLACK``) claim points in reassignment.
-MAX_OVERSHOOT = 0.05
 #: A part is hollow when at least this fraction of its points lie deeper than
 #: ``HOLLOW_DEPTH`` thresholds inside its convex hull (an inner wall): it is fitted and
 #: judged on the others, its outside (``_outside``).
@@ -73,108 +63,6 @@ HOLLOW_DEPTH = 2.0
 #: Ownership in reassignment skips implausible candidates unless the best plausible one
 #: is more than this many times as far from its part's points as the part's MVBB.
 OWNER_SLACK = 2.0
-
-
-@dataclasses.dataclass(frozen=True)
-class Candidate:
-    """One primitive tried on a part: the fitted model, its mean distance, how far its
-    surface reaches out of the object's bounding box (the root MVBB), as a fraction of
-    that box's diagonal (0 when inside; always 0 for the part's own MVBB), and the mean
-    distance of its closed surface to the object's points (``measure.Scorer``; NaN where
-    it was not measured: the thesis's candidates)."""
-
-    model: Model
-    mean_distance: float
-    overshoot: float = 0.0
-    surface_distance: float = float("nan")
-
-    @property
-    def two_sided(self) -> float:
-        """The two-sided score: ``mean_distance + surface_distance`` (NaN if the surface
-        side was not measured)."""
-        return self.mean_distance + self.surface_distance
-
-    @property
-    def plausible(self) -> bool:
-        """Whether the candidate may win its part (``overshoot <= MAX_OVERSHOOT``)."""
-        return self.overshoot <= MAX_OVERSHOOT
-
-    @property
-    def rank(self) -> tuple[bool, float]:
-        """Sort key of the PSDA's choice: plausible candidates first, then the lowest
-        mean distance."""
-        return not self.plausible, self.mean_distance
-
-
-@dataclasses.dataclass(frozen=True, eq=False, repr=False)
-class Part:
-    """A leaf of the box decomposition and the primitive that won it.
-
-    indices : (M,) indices into ``Decomposition.points`` (the leaf's points, or with
-        ``reassign`` the points nearest to this part's primitive); ``mask(N)`` gives
-        them as a mask, ``Decomposition.masks()`` every part's.
-    box : the minimum-volume bounding box of those points.
-    kind : the winning primitive's name (``Model.name``; "box" when the MVBB wins).
-    winner : the winning candidate: ``kind``, or "mvbb" when the bounding box won.
-    model : the winning primitive (a ``Box`` when the MVBB wins).
-    mean_distance : its mean distance to the part's points.
-    candidates : name -> Candidate for every primitive tried, and "mvbb".
-    """
-
-    indices: np.ndarray
-    box: Box
-    kind: str
-    winner: str
-    model: Model
-    mean_distance: float
-    candidates: dict[str, Candidate]
-
-    def mask(self, num_points: int) -> np.ndarray:
-        """(num_points,) bool marking ``indices`` (``Decomposition.masks`` gives all)."""
-        out = np.zeros(num_points, bool)
-        out[self.indices] = True
-        return out
-
-    def to_dict(self) -> dict:
-        """JSON-ready: primitive, score, indices, box, every candidate, and the winning
-        primitive's pose (``transform``, 4x4 rows), volume and centroid."""
-        return {
-            "kind": self.kind,
-            "winner": self.winner,
-            "model": self.model.to_dict(),
-            "mean_distance": self.mean_distance,
-            "num_points": int(self.indices.size),
-            "indices": np.asarray(self.indices).tolist(),
-            "box": self.box.to_dict(),
-            "candidates": {name: _candidate_dict(c) for name, c in self.candidates.items()},
-            "transform": self.model.transform().tolist(),
-            "volume": self.model.volume(),
-            "centroid": self.model.centroid().tolist(),
-        }
-
-    @classmethod
-    def from_dict(cls, data: dict) -> Part:
-        """Inverse of ``to_dict`` (its derived entries, pose, volume and centroid, are
-        recomputed from the model rather than read)."""
-        if "indices" not in data:
-            raise ValueError("a part's dictionary has no 'indices' (written before "
-                             "jaxfit stored them?)")
-        candidates = {name: Candidate(Model.from_dict(c["model"]), float(c["mean_distance"]),
-                                      float(c.get("overshoot", 0.0)),
-                                      float(c.get("surface_distance", "nan")))
-                      for name, c in data["candidates"].items()}
-        box = Box.from_dict(data["box"])
-        if "mvbb" in candidates:  # the part's own box is its MVBB candidate (one object)
-            candidates["mvbb"] = dataclasses.replace(candidates["mvbb"], model=box)
-        winner = data["winner"]
-        model = candidates[winner].model if winner in candidates else \
-            Model.from_dict(data["model"])
-        return cls(np.asarray(data["indices"], dtype=np.int64).reshape(-1), box, data["kind"],
-                   winner, model, float(data["mean_distance"]), candidates)
-
-    def __repr__(self):
-        return (f"Part(kind={self.kind!r}, winner={self.winner!r}, {self.indices.size} points, "
-                f"mean_distance={short(self.mean_distance)}, model={self.model!r})")
 
 
 @dataclasses.dataclass(frozen=True, eq=False, repr=False)
@@ -462,12 +350,7 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
     return Decomposition(points, tuple(parts), tree, time.perf_counter() - started)
 
 
-def _candidate_dict(c: Candidate) -> dict:
-    out = {"model": c.model.to_dict(), "mean_distance": c.mean_distance,
-           "overshoot": c.overshoot}
-    if np.isfinite(c.surface_distance):
-        out["surface_distance"] = c.surface_distance
-    return out
+
 
 
 def _whole_object(points, classes, box: Box, threshold_fraction, key, seed,
@@ -481,14 +364,16 @@ def _whole_object(points, classes, box: Box, threshold_fraction, key, seed,
         points[rng.choice(len(points), MAX_FIT_POINTS, False)]
     found = {"mvbb": Candidate(box, *_scores(scorer, box, points, box))}
     for cls in classes:
-        result = fit_batch([sample], cls, thresholds=[threshold], key=key,
-                           skip_failures=True)[0]
+        (result,) = fits([sample], cls, [threshold], key)
         if result is not None:
             found[cls.name] = Candidate(result.model, *_scores(scorer, result.model, points, box))
     winner = min(found, key=lambda name: found[name].two_sided)
     model = found[winner].model
     return Part(np.arange(len(points)), box, model.name, winner, model,
                 found[winner].mean_distance, found)
+
+
+
 
 
 def _scores(scorer: Scorer, model: Model, points, bounds: Box) -> tuple[float, float, float]:
@@ -619,23 +504,10 @@ def _best_fitted(part: Part) -> Model:
     return min(fitted, key=lambda c: c.mean_distance).model
 
 
-def _grown(model: Model, points, threshold) -> Model:
-    """A primitive bounded along its axis (``Model.axial_bounds``: cylinder, cone)
-    re-bounded on the inliers of its unbounded surface in the whole cloud (others
-    unchanged), so it reaches the points of it that a box cut gave to a neighbour. The
-    bounds are the shape's own (``from_theta``): the main run of inliers along the axis,
-    so a gap of a few thresholds stops the growth."""
-    if not model.axial_bounds:
-        return model
-    inliers = np.abs(model.residual(points)) < threshold
-    if not inliers.any():
-        return model
-    return type(model).from_theta(model.theta(), points, inliers, threshold)
 
 
-def _threshold(box: Box, fraction: float) -> float:
-    """A part's inlier threshold: ``fraction`` of its bounding box's diagonal."""
-    return fraction * float(np.linalg.norm(box.extents))
+
+
 
 
 def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed, say,
@@ -655,7 +527,7 @@ def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed
     candidates = [{"mvbb": Candidate(box, _mean(box, cloud))}
                   for box, cloud in zip(boxes, clouds, strict=True)]
     for cls in classes:
-        results = fit_batch(samples, cls, thresholds=thresholds, key=key, skip_failures=True)
+        results = fits(samples, cls, thresholds, key)
         for found, result, cloud in zip(candidates, results, clouds, strict=True):
             if result is not None:
                 model, mean = result.model, _mean(result.model, cloud)
