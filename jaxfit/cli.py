@@ -105,8 +105,13 @@ CONDITIONAL = (
     ("decompose", ("name", "density", "scale"), lambda a: a.urdf or a.mjcf,
      "--name, --density and --scale set the --urdf/--mjcf files: give --urdf or --mjcf",
      {"name": "object", "density": 1000.0, "scale": 1.0}),
+    ("decompose", ("gain",), lambda a: a.method == "thesis",
+     "--gain sets the thesis method's box cuts: --method measured does not read it", {}),
     ("demo", ("gain",), lambda a: a.shape is None,
      "--gain applies to the decomposition demo, not to the fit of --shape", {"gain": 0.96}),
+    ("demo", ("object",), lambda a: a.shape is None,
+     "--object picks the object to decompose; with --shape the demo fits one primitive "
+     "instead: give one of them", {}),
     ("demo", ("threshold", "estimator"), lambda a: a.shape is not None,
      "--threshold and --estimator apply to the fit demo: give --shape S", {}),
 )
@@ -291,9 +296,6 @@ def _cmd_demo(args):
         return _demo_decomposition(args)
     from .evaluation.synthetic import demo_cloud
 
-    if args.object is not None:
-        raise ValueError("--object picks the object to decompose; with --shape the demo "
-                         "fits one primitive instead: give one of them")
     points, truth, _ = demo_cloud(args.shape, seed=args.seed)
     print(f"demo: {len(points)} points, half of them uniform outliers, around a known "
           f"{args.shape}")
@@ -463,9 +465,9 @@ def _add_decompose(sub):
         "decompose", help="decompose an object into primitives",
         description="Decompose an object into primitives (the PSDA) and print its parts.")
     decompose.add_argument("input", help="mesh, point file or Open Inventor .iv model")
-    decompose.add_argument("--gain", type=float, default=0.96,
-                           help="split a box while its children's volume / its volume < "
-                                "gain; nearer 1 splits more (default 0.96)")
+    decompose.add_argument("--gain", type=float, default=None,
+                           help="(--method thesis) split a box while its children's volume "
+                                "/ its volume < gain; nearer 1 splits more (default 0.96)")
     decompose.add_argument("--min-points", type=int, default=None, metavar="M",
                            help="smallest part (default 2%% of the points)")
     decompose.add_argument("--method", choices=("thesis", "measured"), default="thesis",

@@ -185,6 +185,8 @@ def test_every_bad_output_path_fails_at_once_in_one_line(tmp_path, capsys, monke
         (["decompose", c, "--out", str(tmp_path), "--scale", "0.001"],
          "--scale set the --urdf/--mjcf files"),
         (["demo", "--shape", "sphere", "--gain", "0.9"], "--gain applies to the decomposition"),
+        (["decompose", c, "--method", "measured", "--gain", "0.9"],
+         "--method measured does not read it"),
         (["demo", "--threshold", "0.01"], "--threshold and --estimator apply to the fit demo"),
     ]
     for argv, message in cases:

@@ -183,6 +183,9 @@ def test_one_shape_by_name_and_a_bad_reassign():
     assert set(one.parts[0].candidates) == {"cylinder", "mvbb"}
     with pytest.raises(ValueError, match="reassign must be a non-negative integer"):
         decompose(points, reassign=-1)
+    for thesis_only in ({"gain": 0.9}, {"reassign": 0}):  # refused, not ignored
+        with pytest.raises(ValueError, match="thesis method's"):
+            decompose(points, method="measured", **thesis_only)
 
 
 def test_a_failed_save_leaves_the_old_files(tmp_path, monkeypatch):

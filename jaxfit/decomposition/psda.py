@@ -242,9 +242,9 @@ METHODS = ("thesis", "measured")
 
 
 def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
-              gain: float = 0.96, min_points: int | None = None,
+              gain: float | None = None, min_points: int | None = None,
               shapes=SHAPES, num_points: int = 20000, threshold_fraction=THRESHOLD_FRACTION,
-              key=0, reassign: int = 3, progress: bool = False) -> Decomposition:
+              key=0, reassign: int | None = None, progress: bool = False) -> Decomposition:
     """Decompose an object into primitives.
 
     Both methods first fit every primitive to the whole object (``_whole_object``): if
@@ -263,8 +263,8 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
     method : "thesis" or "measured" (see above).
     max_parts : at most this many parts (a positive integer; default: the thesis's
         BoxDecomposition decides, the measured method stops at ``measured.MAX_PARTS``).
-    gain : (thesis) BoxDecomposition's split threshold (children's volume / parent's volume must
-        fall below it); nearer 1 splits more.
+    gain : (thesis; default 0.96) BoxDecomposition's split threshold (children's volume /
+        parent's volume must fall below it); nearer 1 splits more.
     min_points : smallest part; default 2 % of the points (at least 30).
     shapes : primitives to try on every part.
     num_points : points sampled from a mesh.
@@ -272,10 +272,10 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
         box's diagonal.
     key : int seed or JAX PRNG key, for the sampling of a mesh and of large parts
         (``_checks.numpy_seed``) and for the fits.
-    reassign : (thesis) rounds (at most) of giving every point to the nearest part's primitive
-        (its best fitted one, cylinders and cones grown along their surface) and fitting
-        the parts that changed again, so parts follow the primitives rather than the box
-        cuts (see the module docstring); 0 keeps the leaves as they are.
+    reassign : (thesis; default 3) rounds (at most) of giving every point to the nearest
+        part's primitive (its best fitted one, cylinders and cones grown along their
+        surface) and fitting the parts that changed again, so parts follow the primitives
+        rather than the box cuts (see the module docstring); 0 keeps the leaves as they are.
     progress : print the stages to stderr.
     """
     started = time.perf_counter()
@@ -285,6 +285,11 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
                                   or not isinstance(max_parts, numbers.Integral)
                                   or max_parts < 1):
         raise ValueError(f"max_parts must be a positive integer, got {max_parts!r}")
+    if method == "measured" and (gain is not None or reassign is not None):
+        raise ValueError("gain and reassign are the thesis method's: method='measured' "
+                         "does not read them")
+    gain = 0.96 if gain is None else gain
+    reassign = 3 if reassign is None else reassign
     if isinstance(shapes, str | type):  # one shape, not its letters
         shapes = [shapes]
     classes = [_checks.model_class(s) for s in shapes]
