@@ -366,5 +366,5 @@ def _opposite_face(proj, near, threshold):
     background = g.median(smooth[smooth > 0]) if np.any(smooth > 0) else 0.0
     if smooth[peak] < max(3.0, 3.0 * background):
         return np.nan
-    close = np.abs(proj - centres[peak]) < threshold
-    return float(proj[close].mean())
+    close = np.abs(proj - centres[peak]) < threshold  # the smoothed peak may hold none
+    return float(proj[close].mean()) if close.any() else np.nan
