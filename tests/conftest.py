@@ -7,18 +7,35 @@ Randomness: ``getkey()`` gives a fresh JAX key each call (as optimistix's tests 
 
 import functools
 import itertools
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
+from jaxfit import _cache
 from jaxfit.engine.cloud import normalise as unit_ball  # noqa: F401 - the engine's frame
 from jaxfit.engine.kernel import estimate_batch as estimate  # noqa: F401 - as the engine calls it
 from jaxfit.shapes import REGISTRY
 
 SHAPES = sorted(REGISTRY)
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def run_with_cache(script: str, folder) -> tuple[dict, str]:
+    """Run ``script`` in a fresh interpreter caching in ``folder`` (no other cache
+    setting of the environment kept): the JSON of its last stdout line, and its stderr."""
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("JAXFIT_CACHE", "JAX_COMPILATION_CACHE", "JAX_ENABLE_COMP"))}
+    env[_cache.ENV_DIR] = str(folder)
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr
 
 
 @pytest.fixture

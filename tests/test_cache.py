@@ -14,6 +14,7 @@ import threading
 from pathlib import Path
 
 import pytest
+from conftest import run_with_cache
 
 from jaxfit import _cache
 
@@ -308,14 +309,8 @@ print(json.dumps({"dir": jaxfit.compilation_cache_dir(), "cost": float(result.co
 def fit_with_cache(folder: Path) -> tuple[dict, str | None, str]:
     """FIT in a fresh interpreter caching in folder: (its results, the cache folder it
     used, its stderr)."""
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("JAXFIT_CACHE", "JAX_COMPILATION_CACHE", "JAX_ENABLE_COMP"))}
-    env[_cache.ENV_DIR] = str(folder)
-    proc = subprocess.run([sys.executable, "-c", FIT], env=env, capture_output=True,
-                          text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
-    return out, out.pop("dir"), proc.stderr
+    out, err = run_with_cache(FIT, folder)
+    return out, out.pop("dir"), err
 
 
 def warning_count(stderr: str) -> int:

@@ -7,15 +7,11 @@ round"."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import run_with_cache
 
 from jaxfit import _cache
 from jaxfit.engine import kernel
@@ -139,20 +135,10 @@ print(json.dumps({"on_import": imported, "scipy": "scipy.linalg" in sys.modules,
 """
 
 
-def _run(script: str, folder) -> dict:
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("JAXFIT_CACHE", "JAX_COMPILATION_CACHE", "JAX_ENABLE_COMP"))}
-    env[_cache.ENV_DIR] = str(folder)
-    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
-                          text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
 @pytest.mark.slow
 def test_a_warm_process_imports_neither_scipy_nor_what_a_fit_does_not_need(tmp_path):
-    first = _run(FIT_SCRIPT, tmp_path)
-    second = _run(FIT_SCRIPT, tmp_path)
+    first = run_with_cache(FIT_SCRIPT, tmp_path)[0]
+    second = run_with_cache(FIT_SCRIPT, tmp_path)[0]
     assert second["inliers"] == first["inliers"]
     assert not second["scipy"]  # its stored programs were called without LAPACK
     for lazy in ("jaxfit.decomposition", "jaxfit.detect", "jaxfit.grasping", "jaxfit.batch",
