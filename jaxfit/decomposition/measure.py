@@ -24,7 +24,7 @@ import numpy as np
 
 from ..evaluation.twosided import closed_surface
 
-__all__ = ["SURFACE_SAMPLES", "EXPLAINED", "Scorer"]
+__all__ = ["SURFACE_SAMPLES", "EXPLAINED", "Scorer", "mean_distance"]
 
 #: Points drawn on a candidate's closed surface for its ``surface_distance``: the
 #: standard error of the mean is about the spread of the gaps over 22, a few per cent
@@ -72,7 +72,12 @@ class Scorer:
     def score(self, model, points) -> tuple[float, float]:
         """(mean distance of ``points`` (M, 3) to ``model``'s bounded surface, its
         ``surface_distance``); (inf, inf) where the distances are not finite."""
-        distance = model.distance(points)
-        if not np.all(np.isfinite(distance)):
-            return float("inf"), float("inf")
-        return float(np.mean(distance)), self.surface_distance(model)
+        mean = mean_distance(model, points)
+        return (mean, self.surface_distance(model)) if np.isfinite(mean) else (mean, mean)
+
+
+def mean_distance(model, points) -> float:
+    """Mean distance of ``points`` (M, 3) to ``model``'s bounded surface (the PSDA's
+    one-sided score); inf where a distance is not finite."""
+    distance = model.distance(points)
+    return float(np.mean(distance)) if np.all(np.isfinite(distance)) else float("inf")

@@ -50,7 +50,7 @@ from .. import _checks
 from ..shapes import Box, Model, mass_properties, trimesh_scene
 from .boxdecomp import BoxNode, BoxTree, box_volume, decompose_boxes, mvbb, volume_floor
 from .hull import shallow
-from .measure import EXPLAINED, Scorer
+from .measure import EXPLAINED, Scorer, mean_distance
 from .parts import MAX_FIT_POINTS, THRESHOLD_FRACTION, Candidate, Part, _grown, _threshold, fits
 
 #: The primitives tried on every part by default: the thesis's four.
@@ -529,13 +529,13 @@ def _fit_parts(points, groups, *, classes, bounds, threshold_fraction, key, seed
     rng = np.random.default_rng(seed)
     samples = [c if len(c) <= MAX_FIT_POINTS else c[rng.choice(len(c), MAX_FIT_POINTS, False)]
                for c in clouds]
-    candidates = [{"mvbb": Candidate(box, _mean(box, cloud))}
+    candidates = [{"mvbb": Candidate(box, mean_distance(box, cloud))}
                   for box, cloud in zip(boxes, clouds, strict=True)]
     for cls in classes:
         results = fits(samples, cls, thresholds, key)
         for found, result, cloud in zip(candidates, results, clouds, strict=True):
             if result is not None:
-                model, mean = result.model, _mean(result.model, cloud)
+                model, mean = result.model, mean_distance(result.model, cloud)
                 reach = _overshoot(model, bounds) if np.isfinite(mean) else float("inf")
                 found[cls.name] = Candidate(model, mean, reach)
         say(f"fitted {cls.name} to {len(clouds)} parts ({time.perf_counter() - started:.2f} s)")
@@ -567,11 +567,6 @@ def _overshoot(model: Model, bounds: Box) -> float:
     vertices = model.to_mesh().vertices
     local = np.abs((vertices - bounds.center) @ bounds.rotation) - 0.5 * bounds.extents
     return float(np.max(local, initial=0.0) / np.linalg.norm(bounds.extents))
-
-
-def _mean(model: Model, cloud) -> float:
-    distance = model.distance(cloud)
-    return float(np.mean(distance)) if np.all(np.isfinite(distance)) else float("inf")
 
 
 def _say(message):
