@@ -105,6 +105,41 @@ def test_pair_normals_agree_with_knn_normals_on_smooth_surfaces():
     assert np.median(np.abs(np.sum(normals[:1500] * radial, axis=1))) > np.cos(np.radians(3))
 
 
+def test_product_scatter_matches_the_pair_differences():
+    """With the adjacency, the normals come from one sparse product (centred sums); they
+    agree with the pairs' differences to rounding, and a cloud whose sums would lose
+    too many digits (far from its centre at this radius) takes the differences."""
+    from jaxfit.normals import _product_scatter
+
+    points = _cloud(outliers=20)
+    graph = RadiusGraph.of(points, connect=4.0)
+    d = graph.distinct
+    by_pairs = pair_normals(d, graph.pairs, 16, graph.tree)
+    by_product = pair_normals(d, graph.pairs, 16, graph.tree, graph.adjacency)
+    np.testing.assert_allclose(np.abs(np.sum(by_pairs * by_product, axis=1)), 1.0, atol=1e-12)
+    count = np.diff(graph.adjacency.indptr) + 1.0
+    assert _product_scatter(d, graph.adjacency, count) is not None
+    # 1e5 radii of empty space: the centred squares round away a neighbourhood's scatter.
+    far = np.vstack([d, d[:1] + [1e5 * graph.radius, 0.0, 0.0]])
+    wide = RadiusGraph.of(far, radius=graph.radius)
+    assert _product_scatter(wide.distinct, wide.adjacency,
+                            np.diff(wide.adjacency.indptr) + 1.0) is None
+    np.testing.assert_array_equal(
+        pair_normals(wide.distinct, wide.pairs, 16, wide.tree, wide.adjacency),
+        pair_normals(wide.distinct, wide.pairs, 16, wide.tree))
+
+
+def test_adjacency_is_the_symmetric_matrix_of_the_pairs():
+    graph = RadiusGraph.of(_cloud(), connect=4.0)
+    from scipy.sparse import coo_matrix
+
+    m, (first, second) = len(graph.distinct), graph.pairs.T
+    expected = coo_matrix((np.ones(2 * len(first)), (np.r_[first, second], np.r_[second, first])),
+                          shape=(m, m)).tocsr()  # (canonical: sorted, duplicates summed)
+    assert graph.adjacency.dtype == np.float64 and graph.adjacency.nnz == expected.nnz
+    assert (graph.adjacency != expected).nnz == 0
+
+
 def test_isolated_points_take_their_nearest_neighbours_normal():
     """A point with fewer than PAIR_LEAST points within the radius gets its normal from
     its k nearest neighbours, as estimate_normals would."""
