@@ -22,6 +22,10 @@ CPU_OPTIONS = {
     "xla_cpu_prefer_vector_width": 512,
     "xla_cpu_enable_fast_min_max": True,
 }
+#: The refinement's XLA CPU options: XLA's loop emitters compile its many small fusions
+#: in about half the time of the newer MLIR fusion emitters and run as fast
+#: (docs/engine.md, "Compile options").
+REFINE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 #: On the CPU the scoring kernel splits H hypotheses into this many independent loops
 #: when each gets at least BLOCK_MIN of them: XLA's CPU runtime runs independent loops
 #: side by side, but splits one loop's body over the cores only when it is large.
@@ -41,13 +45,14 @@ def hypothesis_blocks(hypotheses: int) -> int:
     return HYPOTHESIS_BLOCKS if hypotheses >= BLOCK_MIN * HYPOTHESIS_BLOCKS else 1
 
 
-def jit_tuned(fn, static_argnames=()):
-    """``stored_jit`` with CPU_OPTIONS on the CPU, and without them where they are refused
-    (one ``RuntimeWarning``, then the defaults for the rest of the process)."""
+def jit_tuned(fn, static_argnames=(), options=None):
+    """``stored_jit`` with the XLA CPU ``options`` (default CPU_OPTIONS) on the CPU, and
+    without them where they are refused (one ``RuntimeWarning``, then the defaults for
+    the rest of the process)."""
     plain = stored_jit(fn, static_argnames)
     if not on_cpu():
         return plain
-    tuned = stored_jit(fn, static_argnames, CPU_OPTIONS)
+    tuned = stored_jit(fn, static_argnames, CPU_OPTIONS if options is None else options)
     state = {"tuned": True}
 
     @functools.wraps(fn)

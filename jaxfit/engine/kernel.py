@@ -12,9 +12,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .._cache import stored_jit
 from ..shapes import Model
-from .backend import jit_tuned
+from .backend import REFINE_OPTIONS, jit_tuned
 from .refine import DEFAULT_REFINER, LocalOptimizer
 from .sampling import DEFAULT_SAMPLER, Sampler
 from .scoring import CHUNK, DEFAULT_SCORER, Scorer, live_chunks, score
@@ -136,4 +135,4 @@ def _refine_many(cls, thetas, costs, points, n_valid, threshold, bounds, normals
     return pick(theta), pick(cost), pick(count)
 
 
-refine_many = stored_jit(_refine_many, ("cls", "rows", "refiner", "scorer"))
+refine_many = jit_tuned(_refine_many, ("cls", "rows", "refiner", "scorer"), REFINE_OPTIONS)
