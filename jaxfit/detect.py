@@ -633,7 +633,7 @@ def detect(points, shapes=DEFAULT_SHAPES, *, min_inliers: int | None = None,
         fit_options = {**CANDIDATE_OPTIONS, **fit_options}
     context = _Context(cloud, normals, threshold, float(np.cos(np.radians(max_angle))),
                        graph, fit_points, tolerance, fit_options, tuple(classes),
-                       _entropy(key))
+                       _entropy(key), min_inliers)
     found: list[Detection] = []
     live = np.ones(len(cloud), bool)  # unassigned points in groups that may still give
     rnd, started = 0, time.perf_counter()
@@ -677,6 +677,7 @@ class _Context:
     fit_options: dict
     classes: tuple
     entropy: tuple  # the key's words (``_entropy``)
+    min_inliers: int
 
 
 def _entropy(key) -> tuple[int, ...]:
@@ -720,7 +721,9 @@ def _round(ctx: _Context, groups, rnd):
     winner's support in compatible points is refitted to the winner's support (call
     ``_seed(rnd, S + s)``, subsample ``_rng(rnd, g, S + s)``) and takes its place if its
     own support is within the tolerance: a big sphere that won a box's face with a few
-    stray points is reported as the plane it imitates.
+    stray points is reported as the plane it imitates. A winner whose support is below
+    ``min_inliers`` by more than the tolerance is neither refitted nor polished (detect
+    drops it): a group's last rounds are mostly such slivers.
     """
     count = len(ctx.classes)
     samples = [_fit_points(group, ctx.fit_points, _rng(ctx, rnd, g))
@@ -731,6 +734,8 @@ def _round(ctx: _Context, groups, rnd):
     wins, bounds = {}, {}
     for g, found in enumerate(zip(*per_shape, strict=True)):
         decided = _decided(ctx, found)
+        if decided is not None and len(decided[1][1]) * (1.0 + ctx.tolerance) < ctx.min_inliers:
+            continue  # (too small to be reported, even after a refit or the polish)
         if decided is not None:
             wins[g], best[g] = decided
             bounds[g] = [len(c[1]) if c else 0 for c in found]
