@@ -148,6 +148,7 @@ STAGES = (("jaxfit.engine.fit", "converted_batch", "convert", False),
           ("jaxfit.engine.loop", "batch_best_many", "kernel", True),
           ("jaxfit.engine.loop", "refine_many", "refinement", True),
           ("jaxfit.engine.fit", "refitted", "final refit", False),
+          ("jaxfit.engine.fit", "results_many", "results", False),
           ("jaxfit.engine.fit", "result", "results", False))
 
 

@@ -205,6 +205,23 @@ class Model:
     def from_theta(cls, theta, points, inliers, threshold):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    #: Whether the NumPy ``theta_residual`` reads theta only as scalars ``theta[k]`` in
+    #: elementwise arithmetic, and ``distance`` is ``abs(residual)``: then one call with
+    #: theta (P, N), each point's column its own cloud's parameters, gives every cloud's
+    #: residuals bit for bit, and ``fit_batch`` bounds and scores many clouds in one pass
+    #: (``engine.fit.results_many``; a result's host work had been ~40-200 us a cloud).
+    pointwise_theta: ClassVar[bool] = False
+
+    @classmethod
+    def from_theta_many(cls, thetas, points, inliers, thresholds) -> list:
+        """``from_theta`` of C clouds at once: thetas (C, P), points a list of C (N_i, 3)
+        arrays, inliers (sum N_i,) bool, the clouds' masks concatenated, thresholds (C,).
+        A list of C models, each equal to ``from_theta``'s. This default calls it cloud by
+        cloud; a shape overrides it where array code over all clouds is faster."""
+        ends = np.cumsum([len(p) for p in points])
+        return [cls.from_theta(theta, p, inliers[end - len(p):end], float(t))
+                for theta, p, end, t in zip(thetas, points, ends, thresholds, strict=True)]
+
     # ----- public model API --------------------------------------------------------------
     def residual(self, points):
         """Signed distance (N,) of points (N, 3) to the surface used to classify inliers:

@@ -34,6 +34,7 @@ class Plane(Model):
     name: ClassVar[str] = "plane"
     colour: ClassVar[tuple[int, int, int, int]] = (155, 89, 182, 255)
     sample_size: ClassVar[int] = 3
+    pointwise_theta: ClassVar[bool] = True
     axis_index: ClassVar[int] = 0  # the normal
     num_params: ClassVar[int] = 4
     field_specs: ClassVar = {
@@ -83,6 +84,33 @@ class Plane(Model):
         patch = spread <= radius
         center = in_plane @ np.array([u[patch].mean(), v[patch].mean()]) - offset * normal
         return cls(normal, np.float64(offset), center, np.float64(radius))
+
+    @classmethod
+    def from_theta_many(cls, thetas, points, inliers, thresholds):
+        # ``from_theta`` of every cloud, bit for bit: the projections and the patch's
+        # centre are the same NumPy products cloud by cloud (BLAS sums them in its own
+        # order, so they are not redone as elementwise sums), the medians and the
+        # patch's radius are segment versions over all clouds (``_geometry``).
+        thetas = np.asarray(thetas, np.float64)
+        normals = g.sign_canonical(thetas[:, :3])
+        flips = np.where((normals * thetas[:, :3]).sum(axis=1) > 0, 1.0, -1.0)  # (signs
+        offsets = thetas[:, 3] * flips  # of +-|n|^2, as exact as normal @ theta[:3]'s)
+        in_plane = [g.frame(n)[:, :2] for n in normals]  # (3, 2) each
+        counts = np.add.reduceat(inliers, np.cumsum([0] + [len(p) for p in points[:-1]]),
+                                 dtype=np.int64)
+        u, v = (np.concatenate([p @ f[:, i] for p, f in zip(points, in_plane, strict=True)])
+                [inliers] for i in range(2))
+        mu, mv = g.segment_medians(u, counts), g.segment_medians(v, counts)
+        spread = np.hypot(u - np.repeat(mu, counts), v - np.repeat(mv, counts))
+        _, radius = g.main_intervals(spread, counts, g.GAP_THRESHOLDS * np.asarray(thresholds))
+        patch = spread <= np.repeat(radius, counts)
+        kept = np.add.reduceat(patch, np.cumsum(counts) - counts, dtype=np.int64)
+        ends = np.cumsum(kept).tolist()
+        up, vp = u[patch], v[patch]
+        return [cls(n, np.float64(d), f @ np.array([up[e - k:e].mean(), vp[e - k:e].mean()])
+                    - d * n, np.float64(r))
+                for n, d, f, e, k, r in zip(normals, offsets, in_plane, ends, kept.tolist(),
+                                            radius, strict=True)]
 
     def theta(self):
         return np.concatenate([self._array("normal"), [float(self.offset)]])

@@ -34,6 +34,7 @@ class Sphere(Model):
     oriented_sample_size: ClassVar[int] = 2
     radius_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 4
+    pointwise_theta: ClassVar[bool] = True
     # The MSAC cost of a sphere has one basin near the truth: one start is as accurate
     # as four at a quarter of the refinement (measurements: docs/shapes.md).
     lo_starts: ClassVar[int] = 1
