@@ -47,6 +47,25 @@ def test_the_graph_lists_the_pairs_and_spacing_of_a_direct_query():
     assert pair_bound(distinct, graph.radius) >= len(expected)
 
 
+def test_pair_bound_is_the_same_on_a_dense_grid_and_bounds_the_pairs(monkeypatch):
+    """pair_bound counts on a dense grid of cells where the cloud fills its box, on its
+    sorted cells otherwise: the same sum, and never below the true count."""
+    import sys
+
+    detect_module = sys.modules["jaxfit.detect"]
+    points = _cloud()
+    tree = cKDTree(points)
+    for radius in (0.02, 0.1, 0.5):
+        cells = np.prod(np.floor(np.ptp(points, axis=0) / radius) + 3) / len(points)
+        dense = pair_bound(points, radius)
+        monkeypatch.setattr(detect_module, "DENSE_CELLS", -1)  # (the sorted cells)
+        assert pair_bound(points, radius) == dense
+        monkeypatch.undo()
+        assert dense >= len(tree.query_pairs(radius)), radius
+        if radius == 0.5:
+            assert cells <= detect_module.DENSE_CELLS  # (the dense grid was taken)
+
+
 def test_a_guess_far_off_still_gives_the_exact_spacing(monkeypatch):
     """The pairs are listed at 1.1x the radius a subsample's spacing gives; when the
     subsample was far off, the listing is redone at the true radius."""
