@@ -381,21 +381,23 @@ def _dense_pair_bound(grid: np.ndarray) -> float:
 class RadiusGraph:
     """A cloud's points joined within ``radius``, over its distinct rows (copies of a
     point share its row and its answers): the one neighbour structure of a ``detect``
-    call. Its components (groups, supports), its adjacency (the final assignment) and
-    the estimated normals all read it, so the cloud is put in one KD-tree once.
+    call. Its components (groups, supports), its neighbour sums (the final assignment)
+    and the estimated normals all read it, so the cloud is put in one KD-tree once.
 
     distinct : (M, 3) distinct points; inverse : (N,) each point's row in it;
     pairs : (E, 2) rows within radius, first < second (at most ``PAIR_BUDGET`` a row on
     average; a denser cloud lists ``capped_pairs``);
-    adjacency : (M, M) symmetric CSR matrix of the pairs (float64 ones; each row's
-    columns in no particular order); tree : the cKDTree over distinct; spacing : median
+    upper : (M, M) CSR matrix of float64 ones at the pairs (first, second), each pair
+    once (the adjacency's upper triangle; each row's columns in no particular order:
+    half the entries of the symmetric matrix, so half the work of every component
+    call); tree : the cKDTree over distinct; spacing : median
     nearest-neighbour distance among distinct points; radius : the radius.
     """
 
     distinct: np.ndarray
     inverse: np.ndarray
     pairs: np.ndarray
-    adjacency: object
+    upper: object
     tree: object
     spacing: float
     radius: float
@@ -435,8 +437,8 @@ class RadiusGraph:
             pairs = _pairs(tree, distinct, radius)
         else:
             pairs = _pairs(tree, distinct, radius)
-        adjacency = _csr(np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]], m)
-        return cls(distinct, inverse, pairs, adjacency, tree, spacing, float(radius))
+        return cls(distinct, inverse, pairs, _csr(pairs[:, 0], pairs[:, 1], m), tree, spacing,
+                   float(radius))
 
     def components(self, members: np.ndarray) -> np.ndarray:
         """Labels (K,) of the connected components of the points ``members`` (K,)
@@ -451,8 +453,9 @@ class RadiusGraph:
         mark[rows] = True
         kept = np.flatnonzero(mark)
         position = np.cumsum(mark) - 1
-        graph = self.adjacency if len(kept) == len(mark) else self.adjacency[kept][:, kept]
-        _, labels = connected_components(graph, directed=False)
+        graph = self.upper if len(kept) == len(mark) else self.upper[kept][:, kept]
+        # (weak components of the one-way pairs: the undirected graph's components)
+        _, labels = connected_components(graph, directed=True, connection="weak")
         labels = labels[position[rows]]
         by_size = np.argsort(-np.bincount(labels), kind="stable")
         return np.argsort(by_size)[labels]
@@ -465,8 +468,13 @@ class RadiusGraph:
         member = np.zeros((len(self.distinct), count))
         member[rows, owner[owner >= 0]] = 1.0
         asked = self.inverse if at is None else self.inverse[at]
-        touching = (member > 0) | (self.adjacency @ member > 0)
+        touching = (member > 0) | (self.neighbour_sums(member) > 0)
         return touching[asked].T
+
+    def neighbour_sums(self, values: np.ndarray) -> np.ndarray:
+        """(M, K): for each distinct point, the sum of values (M, K) over the points it
+        is paired with (the symmetric adjacency's product, from its upper triangle)."""
+        return self.upper @ values + self.upper.T @ values
 
 
 def _pairs(tree, points: np.ndarray, radius: float, allowance: float = 1.0) -> np.ndarray:
@@ -506,7 +514,7 @@ def estimate_normals(graph: RadiusGraph, k: int = NORMAL_K) -> np.ndarray:
     one per distinct point, shared by its copies. (Not ``jaxfit.estimate_normals``,
     which takes points and queries k nearest neighbours for every point.)"""
     return pair_normals(graph.distinct, graph.pairs, min(k, len(graph.distinct)),
-                        graph.tree, graph.adjacency)[graph.inverse]
+                        graph.tree, graph.neighbour_sums)[graph.inverse]
 
 
 def components(points: np.ndarray, radius: float) -> np.ndarray:

@@ -268,22 +268,23 @@ PRODUCT_ROUNDING = 1e-9
 
 
 def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None,
-                 adjacency=None) -> np.ndarray:
+                 neighbour_sums=None) -> np.ndarray:
     """Unoriented unit normals (M, 3) of distinct points (M, 3) by PCA over each point
     and the points ``pairs`` (E, 2) joins it to (its neighbours within a radius, each
     pair listed once); a point with fewer than ``PAIR_LEAST`` such points takes its
     normal from its k nearest neighbours (from ``tree``, a cKDTree over points, when
     given). No tree query, no (M, k, 3) neighbourhoods: ``detect`` lists the pairs for
-    its connectivity anyway (docs/normals.md). With ``adjacency`` (the (M, M) sparse
-    symmetric matrix of ones at the pairs) the scatter sums are one product of it with
-    the centred coordinates and their products (PRODUCT_ROUNDING bounds the digits this
+    its connectivity anyway (docs/normals.md). With ``neighbour_sums`` (values (M, K)
+    -> (M, K), each row summed over the points it is paired with: a sparse product,
+    ``RadiusGraph.neighbour_sums``) the scatter sums are one such product of the
+    centred coordinates and their products (PRODUCT_ROUNDING bounds the digits this
     loses); else, or where it would lose too many, bincounts over the pairs'
     differences, taken from each point itself."""
     m = len(points)
     if m < 3:
         raise ValueError(f"normals need at least 3 distinct points, got {m}")
     count = np.bincount(pairs[:, 0], minlength=m) + np.bincount(pairs[:, 1], minlength=m) + 1.0
-    cov = None if adjacency is None else _product_scatter(points, adjacency, count)
+    cov = None if neighbour_sums is None else _product_scatter(points, neighbour_sums, count)
     if cov is None:
         cov = _pair_scatter(points, pairs, count)
     out = np.empty((m, 3))
@@ -323,17 +324,17 @@ def _pair_scatter(points, pairs, count) -> np.ndarray:
                              scatter(0, 2), scatter(1, 2))
 
 
-def _product_scatter(points, adjacency, count):
-    """Scatter matrices (M, 3, 3) as ``_pair_scatter``'s, from one product of adjacency
-    (M, M) with the coordinates from the centre of points (M, 3) and their six products
-    (a 9-column sparse product: ~6x faster than the 20 bincounts); None where, for some
+def _product_scatter(points, neighbour_sums, count):
+    """Scatter matrices (M, 3, 3) as ``_pair_scatter``'s, from ``neighbour_sums`` (see
+    ``pair_normals``) of the coordinates from the centre of points (M, 3) and their six
+    products (a 9-column sparse product: ~6x faster than the 20 bincounts); None where, for some
     neighbourhood of at least ``PAIR_LEAST`` points, the rounding of those sums (bound
     ~4 eps x count x the largest squared distance from the centre) exceeds
     ``PRODUCT_ROUNDING`` times its scatter's trace."""
     centred = points - 0.5 * (points.min(axis=0) + points.max(axis=0))
     x, y, z = centred.T
     terms = np.column_stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])
-    sums = adjacency.astype(np.float64, copy=False) @ terms + terms  # (itself included)
+    sums = neighbour_sums(terms) + terms  # (itself included)
     s = sums[:, :3]
     mean = s / count[:, None]
     xx, yy, zz = (sums[:, 3 + i] - s[:, i] * mean[:, i] for i in range(3))

@@ -125,7 +125,7 @@ def test_pair_normals_agree_with_knn_normals_on_smooth_surfaces():
 
 
 def test_product_scatter_matches_the_pair_differences():
-    """With the adjacency, the normals come from one sparse product (centred sums); they
+    """With neighbour sums, the normals come from one sparse product (centred sums); they
     agree with the pairs' differences to rounding, and a cloud whose sums would lose
     too many digits (far from its centre at this radius) takes the differences."""
     from jaxfit.normals import _product_scatter
@@ -134,29 +134,31 @@ def test_product_scatter_matches_the_pair_differences():
     graph = RadiusGraph.of(points, connect=4.0)
     d = graph.distinct
     by_pairs = pair_normals(d, graph.pairs, 16, graph.tree)
-    by_product = pair_normals(d, graph.pairs, 16, graph.tree, graph.adjacency)
+    by_product = pair_normals(d, graph.pairs, 16, graph.tree, graph.neighbour_sums)
     np.testing.assert_allclose(np.abs(np.sum(by_pairs * by_product, axis=1)), 1.0, atol=1e-12)
-    count = np.diff(graph.adjacency.indptr) + 1.0
-    assert _product_scatter(d, graph.adjacency, count) is not None
+    count = graph.neighbour_sums(np.ones((len(d), 1)))[:, 0] + 1.0
+    assert _product_scatter(d, graph.neighbour_sums, count) is not None
     # 1e5 radii of empty space: the centred squares round away a neighbourhood's scatter.
     far = np.vstack([d, d[:1] + [1e5 * graph.radius, 0.0, 0.0]])
     wide = RadiusGraph.of(far, radius=graph.radius)
-    assert _product_scatter(wide.distinct, wide.adjacency,
-                            np.diff(wide.adjacency.indptr) + 1.0) is None
+    wide_count = wide.neighbour_sums(np.ones((len(wide.distinct), 1)))[:, 0] + 1.0
+    assert _product_scatter(wide.distinct, wide.neighbour_sums, wide_count) is None
     np.testing.assert_array_equal(
-        pair_normals(wide.distinct, wide.pairs, 16, wide.tree, wide.adjacency),
+        pair_normals(wide.distinct, wide.pairs, 16, wide.tree, wide.neighbour_sums),
         pair_normals(wide.distinct, wide.pairs, 16, wide.tree))
 
 
-def test_adjacency_is_the_symmetric_matrix_of_the_pairs():
+def test_upper_holds_each_pair_once_and_sums_over_both_ends():
     graph = RadiusGraph.of(_cloud(), connect=4.0)
     from scipy.sparse import coo_matrix
 
     m, (first, second) = len(graph.distinct), graph.pairs.T
-    expected = coo_matrix((np.ones(2 * len(first)), (np.r_[first, second], np.r_[second, first])),
+    expected = coo_matrix((np.ones(len(first)), (first, second)),
                           shape=(m, m)).tocsr()  # (canonical: sorted, duplicates summed)
-    assert graph.adjacency.dtype == np.float64 and graph.adjacency.nnz == expected.nnz
-    assert (graph.adjacency != expected).nnz == 0
+    assert graph.upper.dtype == np.float64 and graph.upper.nnz == expected.nnz
+    assert (graph.upper != expected).nnz == 0
+    values = np.random.default_rng(0).normal(size=(m, 2))
+    np.testing.assert_allclose(graph.neighbour_sums(values), (expected + expected.T) @ values)
 
 
 def test_isolated_points_take_their_nearest_neighbours_normal():
