@@ -224,11 +224,12 @@ def _results_block(cls: type[Model], clouds: list[Cloud], thetas, drawn, status)
     thresholds = [c.threshold for c in chosen]
     inliers = distance < np.repeat(thresholds, sizes)
     costs = np.minimum(distance**2, np.repeat([t**2 for t in thresholds], sizes))
-    ends = np.cumsum(sizes).tolist()
-    for j, model, end, size, t in zip(ok.tolist(), models, ends, sizes.tolist(), thresholds,
-                                      strict=True):
-        mask = inliers[end - size:end]
-        out[j] = FitResult(model, mask, int(np.count_nonzero(mask)),
+    ends = np.cumsum(sizes)
+    counts = np.add.reduceat(inliers, ends - sizes, dtype=np.int64).tolist()
+    for j, model, end, size, t, count in zip(ok.tolist(), models, ends.tolist(),
+                                             sizes.tolist(), thresholds, counts, strict=True):
+        # (each cost summed over its own slice: reduceat sums in another order)
+        out[j] = FitResult(model, inliers[end - size:end], count,
                            float(costs[end - size:end].sum()), int(drawn[j]), status[j], t)
     return out
 

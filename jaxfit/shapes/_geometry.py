@@ -294,22 +294,32 @@ def sorted_segments(values, counts):
     with +inf: one sort for every segment (a partition per segment costs ~5 us of NumPy
     calls each)."""
     counts = np.asarray(counts, np.int64)
-    rows = np.full((len(counts), int(counts.max())), np.inf)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    column = np.arange(int(counts.sum())) - np.repeat(starts, counts)
-    rows[np.repeat(np.arange(len(counts)), counts), column] = values
-    return np.sort(rows, axis=1)
+    width = int(counts.max())
+    rows = np.full((len(counts), width), np.inf)
+    # value i of segment s goes to flat place s * width + (i - start of s)
+    shift = np.arange(len(counts)) * width - (np.cumsum(counts) - counts)
+    rows.ravel()[np.arange(int(counts.sum())) + np.repeat(shift, counts)] = values
+    rows.sort(axis=1)
+    return rows
 
 
 def segment_medians(values, counts):
-    """``median`` (C,) of each segment of values (M,) (``sorted_segments``), bit for bit:
-    the same order statistics and half-sums."""
-    rows = sorted_segments(values, counts)
-    counts = np.asarray(counts, np.int64)
-    index, k = np.arange(len(counts)), counts // 2
-    odd = rows[index, k]
-    even = 0.5 * (rows[index, np.maximum(k - 1, 0)] + odd)
-    return np.where(counts % 2 == 1, odd, even)
+    """``median`` (C,) of each segment of values (M,) (segment i the next counts[i]
+    values): ``median`` of each slice, which is faster than one sort of all segments
+    (``sorted_segments``: ~6 vs ~4 us a segment of ~400 values)."""
+    ends = np.cumsum(counts).tolist()
+    return np.array([median(values[end - n:end]) for end, n in zip(ends, counts, strict=True)])
+
+
+def frames(axes):
+    """``frame`` of each row of axes (C, 3): (C, 3, 3), bit for bit (the same elementwise
+    products, and each squared length by the same dot product, ``matmul`` of stacked
+    vectors)."""
+    axes = np.asarray(axes, dtype=np.float64)
+    helper = np.eye(3)[np.argmin(np.abs(axes), axis=1)]
+    x = cross3(helper.T, axes.T).T  # (C, 3)
+    x /= np.sqrt(np.matmul(x[:, None, :], x[:, :, None])[:, 0])
+    return np.stack([x, cross3(axes.T, x.T).T, axes], axis=2)
 
 
 def main_intervals(values, counts, gaps):

@@ -95,7 +95,7 @@ class Plane(Model):
         normals = g.sign_canonical(thetas[:, :3])
         flips = np.where((normals * thetas[:, :3]).sum(axis=1) > 0, 1.0, -1.0)  # (signs
         offsets = thetas[:, 3] * flips  # of +-|n|^2, as exact as normal @ theta[:3]'s)
-        in_plane = [g.frame(n)[:, :2] for n in normals]  # (3, 2) each
+        in_plane = list(g.frames(normals)[:, :, :2])  # (3, 2) each
         counts = np.add.reduceat(inliers, np.cumsum([0] + [len(p) for p in points[:-1]]),
                                  dtype=np.int64)
         u, v = (np.concatenate([p @ f[:, i] for p, f in zip(points, in_plane, strict=True)])
