@@ -24,7 +24,8 @@ import numpy as np
 
 from ..evaluation.twosided import closed_surface
 
-__all__ = ["SURFACE_SAMPLES", "EXPLAINED", "Scorer", "mean_distance"]
+__all__ = ["SURFACE_SAMPLES", "EXPLAINED", "SPLIT_MARGIN", "Scorer", "mean_distance",
+           "parts_score"]
 
 #: Points drawn on a candidate's closed surface for its ``surface_distance``: the
 #: standard error of the mean is about the spread of the gaps over 22, a few per cent
@@ -39,6 +40,11 @@ SPACING_POINTS = 2048
 #: point): within the noise of a fit
 #: (docs/decomposition.md gives the values measured on both sides of the line).
 EXPLAINED = 0.25
+#: Parts stand for the object instead of one primitive only if they lower its two-sided
+#: score (``parts_score``, over the object's diagonal) by at least this much: the
+#: measured method's split margin, and the PSDA's test of its parts against the whole
+#: object's best primitive.
+SPLIT_MARGIN = 0.001
 
 
 class Scorer:
@@ -81,3 +87,13 @@ def mean_distance(model, points) -> float:
     one-sided score); inf where a distance is not finite."""
     distance = model.distance(points)
     return float(np.mean(distance)) if np.all(np.isfinite(distance)) else float("inf")
+
+
+def parts_score(scorer: Scorer, parts) -> float:
+    """The two-sided score of a set of parts over the object's diagonal: the
+    points-weighted mean, over the parts, of the mean distance of a part's points to its
+    primitive (``Part.mean_distance``) plus the mean distance of the primitive's closed
+    surface to the whole cloud (``Scorer.surface_distance``, drawn afresh)."""
+    sizes = np.array([p.indices.size for p in parts], np.float64)
+    sides = [p.mean_distance + scorer.surface_distance(p.model) for p in parts]
+    return float(np.dot(sizes, sides) / sizes.sum() / scorer.diagonal)

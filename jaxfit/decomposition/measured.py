@@ -38,16 +38,13 @@ import numpy as np
 from ..engine import fit_batch
 from ..shapes import Box
 from .boxdecomp import BoxNode, BoxTree, _principal_axes, mvbb
-from .measure import Scorer
-from .parts import MAX_FIT_POINTS, Candidate, Part, _grown, _threshold, fits
+from .measure import SPLIT_MARGIN, Scorer
+from .parts import MAX_FIT_POINTS, Candidate, Part, SharedNormals, _grown, _threshold, fits
 
 __all__ = ["MAX_PARTS", "SPLIT_MARGIN", "FRACTIONS", "split_greedily", "cuts", "necks"]
 
 #: Parts at most when ``max_parts`` is not given.
 MAX_PARTS = 8
-#: A split is made only if it lowers the object's two-sided score (points-weighted, over
-#: the object's diagonal) by at least this much.
-SPLIT_MARGIN = 0.001
 #: Positions of the cuts tried along each axis, as fractions of the part's span.
 FRACTIONS = (0.25, 0.5, 0.75)
 #: Slabs along an axis whose cross-sections are compared to find necks.
@@ -115,9 +112,10 @@ def split_greedily(points, whole: Part, *, classes, scorer: Scorer, min_points: 
         node.children = (first, first + 1)
         alive = [i for i in alive if i != best] + [first, first + 1]
         history.append(sorted(alive))
-    tree = BoxTree(tuple(BoxNode(mvbb(points[n.indices]), n.indices, n.children, n.parent,
-                                 n.depth) for n in nodes), 0.0, int(min_points),
-                   "measured")
+    # (the root's box is the whole object's: decompose searched its frame on a subset)
+    tree = BoxTree(tuple(BoxNode(whole.box if k == 0 else mvbb(points[n.indices]), n.indices,
+                                 n.children, n.parent, n.depth) for k, n in enumerate(nodes)),
+                   0.0, int(min_points), "measured")
     fit = functools.partial(_fit_groups, points, classes=classes, scorer=scorer,
                             threshold_fraction=threshold_fraction, key=key, seed=seed)
     final = fit([tree.nodes[i].indices for i in history[-1]],
@@ -370,8 +368,9 @@ def _fit_groups(points, groups, boxes=None, *, classes, scorer: Scorer, threshol
     thresholds = [_threshold(b, threshold_fraction) for b in boxes]
     found = [{"mvbb": Candidate(b, *_two(scorer, b, c))}
              for b, c in zip(boxes, clouds, strict=True)]
+    shared = SharedNormals(samples)
     for cls in classes:
-        results = fits(samples, cls, thresholds, key)
+        results = fits(samples, cls, thresholds, key, shared.of(cls))
         for candidates, result, cloud in zip(found, results, clouds, strict=True):
             if result is not None:
                 candidates[cls.name] = Candidate(result.model,

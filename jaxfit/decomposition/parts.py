@@ -149,14 +149,52 @@ def _threshold(box: Box, fraction: float) -> float:
     """A part's inlier threshold: ``fraction`` of its bounding box's diagonal."""
     return fraction * float(np.linalg.norm(box.extents))
 
-def fits(samples, cls, thresholds, key) -> list:
-    """``fit_batch`` of ``samples`` (failures None). A lone cloud is fitted twice (its
-    own key and a second draw's; the lower MSAC cost kept): a call of one cloud would
-    compile its own programs, while two share those of a two-part object's fits (a cold
-    ``jaxfit demo`` compiled both), and the first draw is the same as alone."""
+def sample_normals(samples) -> list:
+    """(M_i, 3) normals of each sample (M_i, 3), estimated as ``fit_batch`` estimates
+    those it is not given (``normals_at_many`` on all the points, the engine's
+    neighbourhood): computed once, they serve the fits of every primitive, where each
+    ``fit_batch`` call would estimate them again (45 of the 200 ms of a warm decompose
+    of the pyvista sphere). Only for samples of at most ``NORMAL_POOL`` points, where the
+    engine estimates every point's normal, so the fits are the same."""
+    from ..engine.cloud import NORMAL_NEIGHBOURS, NORMAL_POOL
+    from ..normals import normals_at_many
+
+    if any(len(s) > NORMAL_POOL for s in samples):
+        raise ValueError(f"samples must have at most {NORMAL_POOL} points to share normals")
+    return normals_at_many(list(samples), [np.arange(len(s)) for s in samples],
+                           [min(NORMAL_NEIGHBOURS, len(s)) for s in samples])
+
+
+class SharedNormals:
+    """``sample_normals(samples)``, estimated on the first ``of(cls)`` for a primitive
+    whose default estimator reads normals (None for the others, and for samples the
+    engine would refuse: it then reports them itself)."""
+
+    def __init__(self, samples):
+        self.samples, self._normals, self._done = list(samples), None, False
+
+    def of(self, cls):
+        if not cls.estimator().uses_normals:
+            return None
+        if not self._done:
+            self._done = True
+            try:
+                self._normals = sample_normals(self.samples)
+            except ValueError:
+                self._normals = None
+        return self._normals
+
+
+def fits(samples, cls, thresholds, key, normals=None) -> list:
+    """``fit_batch`` of ``samples`` (failures None), with their ``normals`` if given
+    (``sample_normals``). A lone cloud is fitted twice (its own key and a second draw's;
+    the lower MSAC cost kept): a call of one cloud would compile its own programs, while
+    two share those of a two-part object's fits (a cold ``jaxfit demo`` compiled both),
+    and the first draw is the same as alone."""
     if len(samples) != 1:
-        return fit_batch(samples, cls, thresholds=thresholds, key=key, skip_failures=True)
-    results = fit_batch(samples * 2, cls, thresholds=list(thresholds) * 2, key=key,
-                        skip_failures=True)
+        return fit_batch(samples, cls, normals=normals, thresholds=thresholds, key=key,
+                         skip_failures=True)
+    results = fit_batch(samples * 2, cls, normals=None if normals is None else normals * 2,
+                        thresholds=list(thresholds) * 2, key=key, skip_failures=True)
     done = [r for r in results if r is not None]
     return [min(done, key=lambda r: r.cost) if done else None]
