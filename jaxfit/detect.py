@@ -90,6 +90,10 @@ CANDIDATE_OPTIONS = {"refine": False}
 #: of inliers needs 70 for 99 %); the adaptive count had run up to 8 batches on
 #: supports the simpler shape did not fit (a plane on a sphere's points).
 REFIT_HYPOTHESES = 256
+#: A simpler shape's candidates are searched (``_capped_options``) only as long as it
+#: takes to find a model explaining this fraction of the largest share of a group's
+#: fitted points that a more complex shape's candidate explains.
+RELEVANT = 0.25
 
 
 @dataclasses.dataclass(frozen=True, repr=False)
@@ -764,8 +768,13 @@ def _round(ctx: _Context, groups, rnd):
     count = len(ctx.classes)
     samples = [_fit_points(group, ctx.fit_points, _rng(ctx, rnd, g))
                for g, group in enumerate(groups)]
-    per_shape = [_candidates(ctx, cls, samples, groups, _seed(ctx, rnd, s))
-                 for s, cls in enumerate(ctx.classes)]
+    # The most complex shape first: each simpler one's search is then capped where it
+    # could only find models that matter (``_capped_options``).
+    per_shape = [None] * count
+    for s in reversed(range(count)):
+        options = _capped_options(ctx, ctx.classes[s], per_shape[s + 1:], samples)
+        per_shape[s] = _candidates(ctx, ctx.classes[s], samples, groups, _seed(ctx, rnd, s),
+                                   options)
     best = [None] * len(groups)
     wins, bounds = {}, {}
     for g, found in enumerate(zip(*per_shape, strict=True)):
@@ -895,6 +904,36 @@ def _fit_points(group, fit_points, rng):
     return np.sort(rng.choice(group, fit_points, replace=False))
 
 
+def _capped_options(ctx: _Context, cls, later, samples) -> dict:
+    """The fit options of shape cls's candidates, given those of the more complex shapes
+    already fitted (later: one list per shape, one candidate or None per group, fitted
+    to cloud[samples[g]]): ``max_hypotheses`` capped at the count that finds, with the
+    call's confidence, a model with ``RELEVANT`` times the largest share of a group's
+    fitted points any of them explains, in every group (no cap where a group has no
+    such candidate, or the caller set ``max_hypotheses`` or ``options``). A simpler
+    candidate with less can neither win (it needs its support within ``tolerance`` of
+    the winner's) nor be refitted to the winner's support (``SIMPLER_REACH``) unless the
+    winner's support is that much below its fitted share; the adaptive count had run a
+    plane on a cylinder's points (16 % inliers) to 5 batches."""
+    from .engine.stopping import required_hypotheses
+
+    options = ctx.fit_options
+    if not later or "options" in options or "max_hypotheses" in options:
+        return options
+    confidence = FitOptions.build(**options).confidence
+    sample_size = cls.estimator(options.get("estimator")).sample_size
+    needed = 0.0
+    for g, sample in enumerate(samples):
+        shares = [c[3] / len(sample) for found in later if (c := found[g]) is not None]
+        if not shares:
+            return options  # (nothing to compare with: the adaptive count)
+        needed = max(needed, required_hypotheses(RELEVANT * max(shares), sample_size,
+                                                 confidence))
+    if not np.isfinite(needed):
+        return options
+    return {**options, "max_hypotheses": int(needed)}
+
+
 def _refit_options(fit_options: dict) -> dict:
     """The fit options of a simpler shape's refit: ``max_hypotheses`` capped at
     ``REFIT_HYPOTHESES`` unless the caller set it (or gave ``options`` whole)."""
@@ -904,9 +943,10 @@ def _refit_options(fit_options: dict) -> dict:
 
 
 def _candidates(ctx: _Context, cls, fit_on, groups, seed: int, fit_options=None):
-    """Per group: (model, compatible indices into the cloud, cost) of shape cls fitted to
-    the points cloud[fit_on[g]], its compatible points taken from cloud[groups[g]]
-    (``_largest`` of them is its support); None where no model could be fitted. One
+    """Per group: (model, compatible indices into the cloud, cost, inliers among the
+    fitted points) of shape cls fitted to the points cloud[fit_on[g]], its compatible
+    points taken from cloud[groups[g]] (``_largest`` of them is its support); None where
+    no model could be fitted. One
     ``fit_batch`` call (seed ``seed``, ``fit_options``, default the context's) for all
     groups."""
     out = [None] * len(groups)
@@ -919,7 +959,8 @@ def _candidates(ctx: _Context, cls, fit_on, groups, seed: int, fit_options=None)
                      **(ctx.fit_options if fit_options is None else fit_options))
     for g, result in zip(which, fits, strict=True):
         if result is not None:
-            out[g] = result.model, _compatible(ctx, result.model, groups[g]), result.cost
+            out[g] = (result.model, _compatible(ctx, result.model, groups[g]), result.cost,
+                      result.num_inliers)
     return out
 
 

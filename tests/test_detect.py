@@ -90,6 +90,34 @@ def test_candidates_skip_lo_unless_the_caller_asks(monkeypatch):
     assert "refine" not in seen[2] and seen[2]["options"].refine is True
 
 
+def test_simpler_candidates_search_only_as_long_as_they_could_matter():
+    """A simpler shape's candidates are capped at the hypotheses that find a model with
+    RELEVANT times the largest share a more complex shape's candidate explains in any
+    group (the most hypotheses any group of the call needs); uncapped where a group has
+    no such candidate, or the caller sets max_hypotheses or options."""
+    import sys
+    import types
+
+    from jaxfit.engine.stopping import required_hypotheses
+    from jaxfit.shapes import Plane
+
+    module = sys.modules["jaxfit.detect"]
+    ctx = types.SimpleNamespace(fit_options={"refine": False})
+    samples = [np.arange(1000), np.arange(500)]
+    later = [[(None, None, 0.0, 900), (None, None, 0.0, 100)],  # cone
+             [(None, None, 0.0, 400), (None, None, 0.0, 200)]]  # cylinder
+    capped = module._capped_options(ctx, Plane, later, samples)
+    # (group 1's best share, 200 of 500, needs more hypotheses than group 0's 900 of 1000)
+    expected = required_hypotheses(module.RELEVANT * 0.4, Plane.sample_size, 0.99)
+    assert capped == {"refine": False, "max_hypotheses": expected} and expected > 256
+    assert module._capped_options(ctx, Plane, [], samples) is ctx.fit_options
+    later[1][1] = later[0][1] = None  # (group 1 has no candidate to compare with)
+    assert module._capped_options(ctx, Plane, later, samples) is ctx.fit_options
+    for given in ({"max_hypotheses": 10}, {"options": None}):
+        ctx.fit_options = given
+        assert module._capped_options(ctx, Plane, later[:1], samples[:1]) is given
+
+
 def test_connected_components_and_choice():
     line = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)]
     points = np.vstack([line, line[:4] + [100.0, 0.0, 0.0]])
