@@ -112,3 +112,21 @@ def test_results_many_leaves_other_shapes_and_gated_clouds_to_result():
         c.__dict__.pop("gated", None)
     assert fit_module.results_many(Sphere, spheres, thetas, np.zeros(4, int),
                                    [Status.CONVERGED] * 4) == [None] * 4
+
+
+def test_plane_rescaled_is_the_field_rule_bit_for_bit(rng):
+    # Plane.rescaled writes out Model.rescaled's rule (points p * scale + shift, lengths
+    # * scale) and moves the offset; the generic rule and the offset, composed, agree.
+    from jaxfit.shapes._base import Model
+
+    for _ in range(50):
+        normal = g.unit(rng.normal(size=3))
+        plane = Plane(normal, np.float64(rng.normal()), rng.normal(size=3),
+                      np.float64(rng.uniform(0.1, 3)))
+        scale, shift = float(rng.uniform(0.01, 100)), rng.normal(size=3) * 50
+        generic = Model.rescaled(plane, scale, shift)
+        offset = np.float64(plane.offset) * scale - normal @ shift
+        assert plane.rescaled(scale, shift) == Plane(normal, offset, generic.center,
+                                                     generic.radius)
+    bare = Plane(normal, np.float64(0.5))
+    assert bare.rescaled(2.0, np.ones(3)).center is None

@@ -107,8 +107,9 @@ class Plane(Model):
         kept = np.add.reduceat(patch, np.cumsum(counts) - counts, dtype=np.int64)
         ends = np.cumsum(kept).tolist()
         up, vp = u[patch], v[patch]
-        return [cls(n, np.float64(d), f @ np.array([up[e - k:e].mean(), vp[e - k:e].mean()])
-                    - d * n, np.float64(r))
+        return [cls(n, np.float64(d), f @ np.array([up[e - k:e].sum() / k,  # (= mean())
+                                                    vp[e - k:e].sum() / k]) - d * n,
+                    np.float64(r))
                 for n, d, f, e, k, r in zip(normals, offsets, in_plane, ends, kept.tolist(),
                                             radius, strict=True)]
 
@@ -116,9 +117,12 @@ class Plane(Model):
         return np.concatenate([self._array("normal"), [float(self.offset)]])
 
     def rescaled(self, scale, shift):
-        out = super().rescaled(scale, shift)
+        # ``Model.rescaled``'s arithmetic for the patch, written out: its field loop and
+        # ``dataclasses.replace`` had cost ~12 us of a fit's results (docs/engine.md).
         offset = self._array("offset") * scale - self._array("normal") @ np.asarray(shift)
-        return type(out)(out.normal, offset, out.center, out.radius)
+        center = None if self.center is None else self.center * scale + shift
+        radius = None if self.radius is None else self.radius * scale + 0.0
+        return type(self)(self.normal, offset, center, radius)
 
     def sample(self, count, rng):
         """(count, 3) points uniform on the disk patch and their normals (count, 3)."""
