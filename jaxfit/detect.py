@@ -58,7 +58,7 @@ import numpy as np
 from . import _checks
 from .engine import FitOptions, default_threshold, fit_batch
 from .io.inputs import converted
-from .normals import distinct_inverse, distinct_rows, pair_normals
+from .normals import column_bounds, distinct_inverse, distinct_rows, pair_normals
 from .shapes import Model, trimesh_scene
 from .shapes._base import short
 
@@ -334,8 +334,8 @@ def pair_bound(points: np.ndarray, radius: float) -> float:
     once, the products of their counts. On the scenes' surfaces about 3 times the true
     count, so that a cloud well within ``PAIR_BUDGET`` needs no exact count
     (``count_neighbors`` cost twice the listing)."""
-    cells = np.floor((points - points.min(axis=0)) / radius).astype(np.int64) + 1
-    dims = cells.max(axis=0) + 2
+    cells = np.floor((points - column_bounds(points)[0]) / radius).astype(np.int64) + 1
+    dims = column_bounds(cells)[1] + 2
     size = float(np.prod(dims.astype(np.float64)))
     if size >= 2.0 ** 62:
         return np.inf  # (no exact int64 key: the caller counts exactly)
@@ -588,9 +588,10 @@ def _check_options(points, shapes, min_inliers, threshold, normals, max_angle, c
                          f"sample of {', '.join(c.name for c in classes)}), got {min_inliers}")
     if len(cloud) < min_inliers:
         raise ValueError(f"too few points: {len(cloud)} < min_inliers = {min_inliers}")
-    _checks.spanning(cloud.min(axis=0), cloud.max(axis=0))
+    lo, hi = column_bounds(cloud)
+    _checks.spanning(lo, hi)
     if threshold is None:
-        sides = np.ptp(cloud, axis=0)
+        sides = hi - lo
         if not sides.max() > 0:
             raise _checks.FitError("all points coincide: there is no shape to detect")
         threshold = default_threshold(sides)
@@ -817,7 +818,7 @@ def _polished(ctx: _Context, model: Model, taken, cost, group, rng):
     if len(taken) < 2 * type(model).sample_size:
         return model, taken, cost
     points = ctx.cloud[_fit_points(taken, POLISH_POINTS, rng)]
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = column_bounds(points)
     center = 0.5 * (lo + hi)
     scale = float(np.sqrt(((points - center) ** 2).sum(axis=1).max()))
     if not scale > 0:

@@ -228,6 +228,14 @@ def _radii(points, k: int, queries, origin) -> tuple[float, np.ndarray, np.ndarr
     return float(base), np.maximum(radii, 4.0 * base), bounds
 
 
+def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lowest (D,), highest (D,)) of each column of points (N, D), N >= 1: reduced over
+    contiguous columns (NumPy's axis-0 reduction of an (N, 3) array strides through it:
+    0.65 ms a bound on 23k points, against ~0.05 ms for the copy and both bounds)."""
+    columns = np.ascontiguousarray(points.T)
+    return columns.min(axis=1), columns.max(axis=1)
+
+
 def distinct_rows(points: np.ndarray) -> np.ndarray:
     """The distinct rows of points (N, 3) in lexicographic order, as
     ``numpy.unique(points, axis=0)`` (-0.0 equal to 0.0), by a lexsort of the
@@ -331,7 +339,7 @@ def _product_scatter(points, neighbour_sums, count):
     neighbourhood of at least ``PAIR_LEAST`` points, the rounding of those sums (bound
     ~4 eps x count x the largest squared distance from the centre) exceeds
     ``PRODUCT_ROUNDING`` times its scatter's trace."""
-    centred = points - 0.5 * (points.min(axis=0) + points.max(axis=0))
+    centred = points - 0.5 * sum(column_bounds(points))
     x, y, z = centred.T
     terms = np.column_stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])
     sums = neighbour_sums(terms) + terms  # (itself included)
