@@ -11,9 +11,10 @@ bottom rim of a cylinder standing on it; the connectivity keeps a plane from tak
 coplanar tops of two separate boxes.
 
 One neighbour structure serves the whole call (``RadiusGraph``): the distinct points in
-one KD-tree, every pair of them within the connectivity radius listed once. The groups,
-the supports, the final assignment and (when none are given) the normals, a PCA over each
-point's neighbours within that radius (``normals.pair_normals``), all read it.
+one KD-tree, every pair of them within the connectivity radius listed once (and held as
+a sparse matrix, each pair once). The groups, the supports, the final assignment and
+(when none are given) the normals, a PCA over each point's neighbours within that radius
+(``normals.pair_normals``), all read it.
 
 Each round works on *groups*: the connected components of the points still unassigned
 (at the same radius). Objects resting on a floor fall apart into one group each once the
@@ -23,7 +24,9 @@ its cloud g, on at most ``fit_points`` of each group's points) and its support m
 on the whole group. A group can only lose points to a primitive fitted inside it, so the
 groups of a round do not interact. The candidates are fitted without LO-RANSAC
 (``CANDIDATE_OPTIONS``); each group's winner is refitted instead, by a least-squares fit
-on its support (``_polished``).
+on its support (``_polished``). The most complex shape is fitted first, and a simpler
+one's search stops once it would have found any model that could still matter
+(``_capped_options``).
 
 Choice per group (deliberately simple): the candidate with the largest support wins; but
 a more complex shape only beats a simpler one (earlier in ``shapes``) when its support is
@@ -757,12 +760,14 @@ def _round(ctx: _Context, groups, rnd):
     shape fits), every group's candidates of one shape fitted in one ``fit_batch`` call.
 
     Shape s of S is fitted to every group in the call seeded ``_seed(rnd, s)`` (group g
-    its cloud g), on the subsample ``_rng(rnd, g)`` draws. When a more complex shape
-    wins, each simpler one whose own candidate had at least ``SIMPLER_REACH`` times the
-    winner's support in compatible points is refitted to the winner's support (call
-    ``_seed(rnd, S + s)``, subsample ``_rng(rnd, g, S + s)``) and takes its place if its
-    own support is within the tolerance: a big sphere that won a box's face with a few
-    stray points is reported as the plane it imitates. A winner whose support is below
+    its cloud g), on the subsample ``_rng(rnd, g)`` draws; the calls run from the most
+    complex shape down, each simpler one capped by ``_capped_options``. When a more
+    complex shape wins, each simpler one whose own candidate had at least
+    ``SIMPLER_REACH`` times the winner's support in compatible points is refitted to the
+    winner's support (call ``_seed(rnd, S + s)``, subsample ``_rng(rnd, g, S + s)``, at
+    most ``REFIT_HYPOTHESES``) and takes its place if its own support is within the
+    tolerance: a big sphere that won a box's face with a few stray points is reported as
+    the plane it imitates. A winner whose support is below
     ``min_inliers`` by more than the tolerance is neither refitted nor polished (detect
     drops it): a group's last rounds are mostly such slivers.
     """
