@@ -449,10 +449,12 @@ def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
     cov - lambda I (as PCL's eigen33), a few times faster than batched
     ``numpy.linalg.eigh`` (docs/normals.md). Where the smallest eigenvalue is (nearly)
     repeated the cross products vanish and the direction is ill-defined: those rows fall
-    back to ``eigh``.
+    back to ``eigh``. All on (B,) element arrays: NumPy's batched det/cross and its
+    reductions over an axis of 3 were slow (the lengths' sum and argmax: 5.1 -> 2.7 ms
+    on 21k matrices, the same bits).
     """
-    a, b, c = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]  # element arrays: NumPy's
-    d, e, f = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]  # batched det/cross were slow
+    a, b, c = (np.ascontiguousarray(cov[:, i, i]) for i in range(3))
+    d, e, f = (np.ascontiguousarray(cov[:, i, j]) for i, j in ((0, 1), (0, 2), (1, 2)))
     mean = (a + b + c) / 3.0
     a0, b0, c0 = a - mean, b - mean, c - mean
     p = np.sqrt((a0 * a0 + b0 * b0 + c0 * c0 + 2.0 * (d * d + e * e + f * f)) / 6.0)
@@ -460,15 +462,19 @@ def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
     cubed = np.where(p > 0, p, 1.0) ** 3
     phi = np.arccos(np.clip(det / (2.0 * cubed), -1.0, 1.0)) / 3.0
     smallest = mean + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    r0 = np.stack([a - smallest, d, e], axis=1)  # rows of cov - smallest * I
-    r1 = np.stack([d, b - smallest, f], axis=1)
-    r2 = np.stack([e, f, c - smallest], axis=1)
-    crosses = np.stack([_cross(r0, r1), _cross(r0, r2), _cross(r1, r2)], axis=1)  # (B, 3, 3)
-    lengths = np.sqrt(np.sum(crosses * crosses, axis=2))
-    pick = np.argmax(lengths, axis=1)
-    every = np.arange(len(cov))
-    best = lengths[every, pick]
-    out = crosses[every, pick] / np.where(best > 0, best, 1.0)[:, None]
+    r0, r1, r2 = (a - smallest, d, e), (d, b - smallest, f), (e, f, c - smallest)  # rows
+    crosses = (_cross(r0, r1), _cross(r0, r2), _cross(r1, r2))  # of cov - smallest * I
+    lengths = [np.sqrt(x * x + y * y + z * z) for x, y, z in crosses]
+    best, pick = lengths[0], np.zeros(len(a), np.int8)  # (the first longest, as argmax)
+    for i in (1, 2):
+        longer = lengths[i] > best
+        pick[longer] = i
+        best = np.where(longer, lengths[i], best)
+    divisor = np.where(best > 0, best, 1.0)
+    out = np.empty((len(a), 3), cov.dtype)
+    for k in range(3):
+        out[:, k] = np.where(pick == 0, crosses[0][k],
+                             np.where(pick == 1, crosses[1][k], crosses[2][k])) / divisor
     scale = np.maximum(np.abs(mean) * 3.0, np.finfo(cov.dtype).tiny)
     unclear = best <= 1e-8 * scale * scale
     if unclear.any():  # eigh sorts eigenvalues ascending: column 0
@@ -477,9 +483,8 @@ def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
 
 
 def _cross(u, v):
-    """Row-wise cross products of u, v (B, 3)."""
-    return np.stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
-                     u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]], axis=1)
+    """The cross product of u and v, each a tuple of 3 element arrays (B,): a tuple of 3."""
+    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
 
 
 def _reference_direction(points: np.ndarray, viewpoint) -> np.ndarray:
