@@ -236,13 +236,24 @@ def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return columns.min(axis=1), columns.max(axis=1)
 
 
+def _differs_from_previous(rows: np.ndarray) -> np.ndarray:
+    """(N - 1,) bool: whether each row of rows (N, D) after the first differs from the one
+    before, column by column over contiguous columns (``np.any(..., axis=1)`` over an
+    (N, 3) comparison was 0.34 ms on 23k rows, this 0.06 ms)."""
+    columns = np.ascontiguousarray(rows.T)
+    out = columns[0, 1:] != columns[0, :-1]
+    for column in columns[1:]:
+        out |= column[1:] != column[:-1]
+    return out
+
+
 def distinct_rows(points: np.ndarray) -> np.ndarray:
     """The distinct rows of points (N, 3) in lexicographic order, as
     ``numpy.unique(points, axis=0)`` (-0.0 equal to 0.0), by a lexsort of the
     columns, several times faster."""
     ordered = points[np.lexsort(points.T[::-1])]
     keep = np.ones(len(ordered), bool)
-    keep[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    keep[1:] = _differs_from_previous(ordered)
     return ordered[keep]
 
 
@@ -257,7 +268,7 @@ def distinct_inverse(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         order = np.lexsort(points.T[::-1])
         ordered = points[order]
     keep = np.ones(len(ordered), bool)
-    keep[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    keep[1:] = _differs_from_previous(ordered)
     inverse = np.empty(len(points), np.int64)
     inverse[order] = np.cumsum(keep) - 1
     return ordered[keep], inverse
