@@ -130,3 +130,12 @@ def test_plane_rescaled_is_the_field_rule_bit_for_bit(rng):
                                                      generic.radius)
     bare = Plane(normal, np.float64(0.5))
     assert bare.rescaled(2.0, np.ones(3)).center is None
+
+
+def test_sphere_rescaled_is_the_field_rule_bit_for_bit(rng):
+    from jaxfit.shapes._base import Model
+
+    for _ in range(50):
+        sphere = Sphere(rng.normal(size=3), np.float64(rng.uniform(0.1, 3)))
+        scale, shift = float(rng.uniform(0.01, 100)), rng.normal(size=3) * 50
+        assert sphere.rescaled(scale, shift) == Model.rescaled(sphere, scale, shift)
