@@ -926,7 +926,7 @@ def _capped_options(ctx: _Context, cls, later, samples) -> dict:
     options = ctx.fit_options
     if not later or "options" in options or "max_hypotheses" in options:
         return options
-    confidence = FitOptions.build(**options).confidence
+    confidence = float(options.get("confidence", FitOptions.confidence))  # (checked already)
     sample_size = cls.estimator(options.get("estimator")).sample_size
     needed = 0.0
     for g, sample in enumerate(samples):
