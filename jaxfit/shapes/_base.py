@@ -28,6 +28,9 @@ needs as class-level functions:
   uses it instead of Levenberg-Marquardt steps.
 - ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
   height / extents / faces fixed from the inliers after the loop (NumPy, float64).
+- ``from_theta_many(thetas, points, inliers, thresholds)`` (optional: the default calls
+  ``from_theta`` per cloud) and ``pointwise_theta`` (default False): ``fit_batch``'s
+  results for many clouds in array code (``engine.fit.results_many``).
 
 ``theta`` is the flat hypothesis vector of length ``num_params``; it is an engine detail,
 documented per primitive, while the dataclass fields are the public parameters.
