@@ -24,7 +24,8 @@ Then, per primitive, the programs of a cold first fit (each one's trace, lowerin
 compile seconds from ``jax_log_compiles``), with the refinement compiled ahead in a thread
 or in turn; each of those programs compiled again alone from the fit's own arguments
 (``sizes``: process CPU per phase, the optimised program's size and LAPACK calls, its run
-time); and ``jaxfit.warmup()`` in one and two threads.
+time); the kernel and the refinement compiled under other XLA CPU options (``options``:
+compile CPU, run time, same bits or not); and ``jaxfit.warmup()`` in one and two threads.
 
 Run: ``python -m benchmarks.coldstart [--repeats 5] [--sections process,first-call,...]``.
 Writes ``benchmarks/results/coldstart.json``, ``coldstart.md`` and ``coldstart.png``
@@ -361,6 +362,111 @@ def sizes_table(rows) -> str:
     return "\n".join(lines)
 
 
+
+# The kernel and the refinement of a first fit compiled again alone, under the XLA CPU
+# option sets of OPTION_VARIANTS added to each program's own options (backend.py), in
+# turn and in one process: compile CPU s, median run ms, and whether the outputs are
+# bit for bit those of the program's own options.
+OPTIONS = r"""
+import json, statistics, sys, time
+import jax
+import numpy as np
+import jaxfit
+import jaxfit.engine.loop as loop
+from jaxfit import _cache
+from jaxfit.evaluation.synthetic import demo_cloud
+loop.COMPILE_AHEAD = False
+calls = {}
+original = _cache.Stored.__call__
+def record(self, *args, **kwargs):
+    calls.setdefault(self.name, (self, args, kwargs))
+    return original(self, *args, **kwargs)
+_cache.Stored.__call__ = record
+shape, count, variants = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3])
+points, _, _ = demo_cloud(shape, count=count, outlier_ratio=0.3, seed=0)
+jaxfit.fit(points, shape, key=0)
+out = {}
+for name, (stored, args, kwargs) in calls.items():
+    if "seed_keys" in name:
+        continue
+    dyn = [a for i, a in enumerate(args) if i not in stored.static_positions]
+    dyn_kw = {k: v for k, v in kwargs.items() if k not in stored.static_names}
+    compiled, reference = {}, None
+    for label, extra in variants.items():
+        jax.clear_caches()
+        lowered = stored.jitted.trace(*args, **kwargs).lower()
+        cpu = time.process_time()
+        compiled[label] = lowered.compile(compiler_options={**stored.options, **extra})
+        cpu = time.process_time() - cpu
+        leaves = [np.asarray(a) for a in jax.tree_util.tree_leaves(
+            jax.block_until_ready(compiled[label](*dyn, **dyn_kw)))]
+        reference = leaves if reference is None else reference
+        same = all(np.array_equal(a, b, equal_nan=True) for a, b in zip(leaves, reference))
+        out.setdefault(name.rsplit(".", 1)[-1], {})[label] = {"compile": cpu, "same": same,
+                                                               "runs": []}
+    for _ in range(20):  # the variants take turns
+        for label, program in compiled.items():
+            start = time.perf_counter()
+            jax.block_until_ready(program(*dyn, **dyn_kw))
+            out[name.rsplit(".", 1)[-1]][label]["runs"].append(time.perf_counter() - start)
+for programs in out.values():
+    for row in programs.values():
+        row["run_ms"] = 1e3 * statistics.median(row.pop("runs"))
+print(json.dumps(out))
+"""
+#: Option sets added to a program's own XLA CPU options (``backend.CPU_OPTIONS`` for the
+#: kernel, ``backend.REFINE_OPTIONS`` for the refinement); the first is the reference.
+OPTION_VARIANTS = {
+    "own": {},
+    "fusion emitters": {"xla_cpu_use_fusion_emitters": True},
+    "loop emitters": {"xla_cpu_use_fusion_emitters": False},
+    "loop emitters, LLVM level 1": {"xla_cpu_use_fusion_emitters": False,
+                                    "xla_backend_optimization_level": 1},
+}
+OPTION_POINTS = (2000, 50000)
+
+
+def option_costs(repeats: int) -> list[dict]:
+    """Per primitive and cloud size (``OPTION_POINTS``), the kernel and the refinement
+    compiled under each of ``OPTION_VARIANTS`` (``OPTIONS``) in a fresh process with the
+    cache off: medians over ``repeats`` processes."""
+    rows = []
+    for shape in SHAPES:
+        for count in OPTION_POINTS:
+            found = []
+            for _ in range(repeats):
+                _, out = wall([sys.executable, "-c", OPTIONS, shape, str(count),
+                               json.dumps(OPTION_VARIANTS)], _env(None))
+                found.append(json.loads(out.strip().splitlines()[-1]))
+            for program, variants in found[0].items():
+                for label in variants:
+                    cells = [f[program][label] for f in found]
+                    rows.append({"shape": shape, "points": count, "program": program,
+                                 "options": label, "runs": len(found),
+                                 "compile": statistics.median(c["compile"] for c in cells),
+                                 "run_ms": statistics.median(c["run_ms"] for c in cells),
+                                 "same": all(c["same"] for c in cells)})
+            print(f"{shape} {count}: " + ", ".join(
+                f"{r['program']} {r['options']} {r['compile']:.2f} s" for r in rows
+                if r["shape"] == shape and r["points"] == count), flush=True)
+    return rows
+
+
+def options_table(rows) -> str:
+    labels = list(dict.fromkeys(r["options"] for r in rows))
+    lines = ["| shape | points | program | " + " | ".join(
+                 f"{label}: compile CPU s / run ms" for label in labels) + " |",
+             "|---|---|---|" + "---|" * len(labels)]
+    cells: dict = {}
+    for r in rows:
+        mark = "" if r["same"] else " (other bits)"
+        cells.setdefault((r["shape"], r["points"], r["program"]), {})[r["options"]] = \
+            f"{r['compile']:.2f} / {r['run_ms']:.2f}{mark}"
+    for (shape, points, program), by_label in cells.items():
+        lines.append(f"| {shape} | {points:,} | `{program}` | "
+                     + " | ".join(by_label.get(label, "") for label in labels) + " |")
+    return "\n".join(lines)
+
 WARMUP = """
 import json, sys, time
 cpu, start = time.process_time(), time.perf_counter()
@@ -476,7 +582,7 @@ def plot(times, rows, path):
     print(f"wrote {path}")
 
 
-SECTIONS = ("process", "first-call", "programs", "sizes", "warmup")
+SECTIONS = ("process", "first-call", "programs", "sizes", "options", "warmup")
 
 
 def main(argv=None):
@@ -510,6 +616,8 @@ def main(argv=None):
             results["programs"] = program_costs(work, args.first_call_repeats)
         if "sizes" in sections:
             results["sizes"] = program_sizes(args.first_call_repeats)
+        if "options" in sections:
+            results["options"] = option_costs(args.first_call_repeats)
         if "warmup" in sections:
             results["warmup"] = warmup_costs(work, args.first_call_repeats)
     finally:
@@ -543,6 +651,11 @@ def main(argv=None):
     if "sizes" in results:
         parts += ["## Each program of a first fit compiled alone (AOT, cache off, 2,000 points, "
                   "process CPU, medians)", sizes_table(results["sizes"])]
+    if "options" in results:
+        parts += ["## The kernel and the refinement under XLA CPU option sets (AOT, cache off, "
+                  "process CPU, medians; `own`: the options jaxfit compiles them with; "
+                  "\"other bits\": outputs differ from `own`'s)",
+                  options_table(results["options"])]
     if "warmup" in results:
         parts += ["## `jaxfit.warmup()`: every shape at the default buckets (fresh process)",
                   warmup_table(results["warmup"])]
