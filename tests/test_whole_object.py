@@ -1,6 +1,6 @@
 """The whole-object side of decompose: the PSDA's parts against the object's one best
-primitive, judged two-sided (``psda._splits_better``), the root box's frame searched on a
-subset (``mvbb(frame_points=...)``) and the normals shared by a part's fits."""
+primitive, judged two-sided (``psda._splits_better``), and the normals shared by a
+part's fits (``parts.SharedNormals``)."""
 
 import numpy as np
 import pytest
@@ -52,25 +52,6 @@ def test_two_balls_as_two_parts_beat_one_ball_around_both():
     whole = _whole(Sphere(np.zeros(3), 0.1), points, scorer)
     parts = [_part(left, points, np.arange(2000)), _part(right, points, np.arange(2000, 4000))]
     assert _splits_better(whole, parts, scorer)
-
-
-def test_mvbb_frame_from_a_subset_contains_every_point_and_is_near_minimal():
-    from scipy.spatial.transform import Rotation
-
-    box = Box(np.array([0.1, -0.2, 0.3]), Rotation.random(random_state=3).as_matrix(),
-              np.array([0.3, 0.1, 0.05]))
-    points = _surface(box, 20000, 0)
-    full, quick = mvbb(points), mvbb(points, frame_points=2048)
-    local = np.abs((points - quick.center) @ quick.rotation)
-    assert np.all(local <= 0.5 * quick.extents + 1e-12)
-    assert np.prod(quick.extents) <= 1.01 * np.prod(full.extents)
-    assert np.allclose(mvbb(points, frame_points=len(points)).extents, full.extents)
-
-
-@pytest.mark.parametrize("bad", [0, -5, 2.5, True])
-def test_mvbb_frame_points_must_be_a_positive_integer(bad):
-    with pytest.raises(ValueError, match="frame_points"):
-        mvbb(np.random.default_rng(0).normal(size=(100, 3)), frame_points=bad)
 
 
 @pytest.mark.slow

@@ -65,7 +65,7 @@ _BLOCK = 1 << 20
 
 
 # ----- minimum-volume bounding box ----------------------------------------------------------
-def mvbb(points, *, min_extent: float | None = None, frame_points: int | None = None) -> Box:
+def mvbb(points, *, min_extent: float | None = None) -> Box:
     """Minimum-volume oriented bounding box of a point cloud.
 
     Parameters
@@ -76,11 +76,6 @@ def mvbb(points, *, min_extent: float | None = None, frame_points: int | None = 
         Floor on every extent, so flat, collinear or single-point input gives a thin box
         rather than a zero one. Default: 1e-6 times the largest extent (1e-12 if all
         points coincide).
-    frame_points : int, optional
-        Search the box's axes on an even subset of at most this many points (the
-        extents still cover every point): the frame search's convex hull of all 20,000
-        points of a benchmark mesh was most of its time (``decompose``'s root box:
-        docs/decomposition.md). Default: all points.
 
     Returns
     -------
@@ -89,17 +84,7 @@ def mvbb(points, *, min_extent: float | None = None, frame_points: int | None = 
         first two columns with their largest component positive), ``extents`` (3,) full
         side lengths. It contains every point.
     """
-    cloud = _as_cloud(points)
-    if frame_points is not None and (isinstance(frame_points, bool) or frame_points < 1
-                                     or int(frame_points) != frame_points):
-        raise ValueError(f"frame_points must be a positive integer, got {frame_points!r}")
-    if frame_points is not None and len(cloud) > frame_points:
-        rotation = _mvbb_frame(cloud[::-(-len(cloud) // int(frame_points))])[0]
-        origin = cloud.mean(axis=0)
-        center, extents = _fit_frame(cloud - origin, rotation)
-        center = center + origin
-    else:
-        rotation, center, extents = _mvbb_frame(cloud)
+    rotation, center, extents = _mvbb_frame(_as_cloud(points))
     floor = min_extent if min_extent is not None else max(1e-6 * extents.max(), 1e-12)
     return _make_box(rotation, center, np.maximum(extents, floor))
 

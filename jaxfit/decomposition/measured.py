@@ -112,7 +112,7 @@ def split_greedily(points, whole: Part, *, classes, scorer: Scorer, min_points: 
         node.children = (first, first + 1)
         alive = [i for i in alive if i != best] + [first, first + 1]
         history.append(sorted(alive))
-    # (the root's box is the whole object's: decompose searched its frame on a subset)
+    # (the root's box is the whole object's MVBB, computed once by decompose)
     tree = BoxTree(tuple(BoxNode(whole.box if k == 0 else mvbb(points[n.indices]), n.indices,
                                  n.children, n.parent, n.depth) for k, n in enumerate(nodes)),
                    0.0, int(min_points), "measured")

@@ -314,7 +314,7 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
     say = _say if progress else (lambda *_: None)
 
     scorer = Scorer(points, seed)
-    root = mvbb(points, frame_points=MAX_FIT_POINTS)
+    root = mvbb(points)
     whole = _whole_object(points, classes, root, threshold_fraction, key, seed, scorer)
     single = BoxTree((BoxNode(root, np.arange(len(points))),), float(gain), int(min_points),
                      "root")
