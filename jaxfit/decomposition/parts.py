@@ -155,7 +155,9 @@ def sample_normals(samples) -> list:
     neighbourhood): computed once, they serve the fits of every primitive, where each
     ``fit_batch`` call would estimate them again (45 of the 200 ms of a warm decompose
     of the pyvista sphere). Only for samples of at most ``NORMAL_POOL`` points, where the
-    engine estimates every point's normal, so the fits are the same."""
+    engine estimates every point's normal: the same normals, which ``fit_batch``
+    renormalises (~1e-16) as it does any it is given, so the fits are the same up to
+    rounding (docs/decomposition.md: where that changed a result)."""
     from ..engine.cloud import NORMAL_NEIGHBOURS, NORMAL_POOL
     from ..normals import normals_at_many
 

@@ -14,8 +14,11 @@ Departures from the thesis, each for an object the thesis's rule got wrong:
 
 - The whole object first (``_whole_object``): every primitive is fitted to all the
   points and scored two-sided (``measure.Scorer``); one that explains the object within
-  the noise of a fit (``_explains``) is the one part, and no box is cut (an exact ball
-  was cut into three slabs, fitted and merged back, 8x slower).
+  the noise of a fit (``_explains``; the first in ``shapes`` that does) is the one part,
+  and no box is cut (an exact ball was cut into three slabs, fitted and merged back, 8x
+  slower). Otherwise the thesis's parts stand only if they fit the object better than
+  that primitive two-sided (``_splits_better``): one-sided, a box inscribed in the YCB
+  soup can's middle slab won it and took the can's recessed lids.
 
 - Reassignment (``reassign`` rounds after step 3): every point goes to the nearest
   part's best fitted primitive (cylinders and cones first grown along their surface,
@@ -259,7 +262,9 @@ def decompose(source, *, method: str = "thesis", max_parts: int | None = None,
     Both methods first fit every primitive to the whole object (``_whole_object``): if
     one explains it two-sided within the noise of a fit (``measure.EXPLAINED``), it is
     the one part. Otherwise ``method="thesis"`` runs the PSDA (BoxDecomposition, a fit
-    of every primitive to every leaf, the lowest mean distance wins, reassignment);
+    of every primitive to every leaf, the lowest mean distance wins, reassignment), and
+    keeps its parts if they lower the two-sided score below that primitive's by
+    ``measure.SPLIT_MARGIN`` (else it is the one part);
     ``method="measured"`` splits greedily where the two-sided score falls most
     (``jaxfit.decomposition.measured``) and keeps every part count of the run
     (``Decomposition.levels``, ``with_parts``).
