@@ -75,6 +75,9 @@ HOLLOW_DEPTH = 2.0
 #: Ownership in reassignment skips implausible candidates unless the best plausible one
 #: is more than this many times as far from its part's points as the part's MVBB.
 OWNER_SLACK = 2.0
+#: In reassignment a point keeps its part unless another part's primitive is nearer by
+#: this fraction of its part's threshold (``_regroup``).
+KEEP_MARGIN = 0.1
 
 
 @dataclasses.dataclass(frozen=True, eq=False, repr=False)
@@ -405,8 +408,8 @@ def _whole_object(points, classes, box: Box, threshold_fraction, key, seed,
             found[cls.name] = Candidate(result.model, *_scores(scorer, result.model, points, box))
             if _explains(found[cls.name], threshold, scorer.spacing):
                 break
-    else:
-        found["mvbb"] = Candidate(box, *_scores(scorer, box, points, box))
+    # (scored even after an early accept: ``Part.candidates`` always holds the MVBB)
+    found["mvbb"] = Candidate(box, *_scores(scorer, box, points, box))
     winner = min(found, key=lambda name: found[name].two_sided)
     model = found[winner].model
     return Part(np.arange(len(points)), box, model.name, winner, model,
@@ -465,13 +468,27 @@ def _regroup(points, parts, threshold_fraction, smallest):
     post in the shade's box). Ownership is judged with each part's best *fitted*
     primitive, grown along its surface (``_grown``), not with its bounding box: a box
     enclosing a mixed part is near every point in it and would keep the sliver.
+    A point leaves its part only for a primitive nearer by ``KEEP_MARGIN`` of its part's
+    threshold: where two primitives meet, both explain the points of the seam, and the
+    nearer by a hair (the other's fit off by a few micrometres) had taken a foot of
+    base-plate points into a post's cylinder, stretching it.
     """
-    models = [_grown(_best_fitted(p), points, _threshold(p.box, threshold_fraction))
-              for p in parts]
+    thresholds = np.array([_threshold(p.box, threshold_fraction) for p in parts])
+    models = [_grown(_best_fitted(p), points, t) for p, t in zip(parts, thresholds, strict=True)]
+    current = np.full(len(points), -1)
+    for i, p in enumerate(parts):
+        current[p.indices] = i
     alive = np.arange(len(models))
     while True:
         distances = np.stack([models[i].distance(points) for i in alive])  # (P, N)
         owner = alive[np.argmin(distances, axis=0)]
+        # (the position in ``alive`` of each point's part; -1 where that part is gone)
+        mine = np.where(np.isin(current, alive), np.searchsorted(alive, current), -1)
+        at = np.arange(len(points))
+        own = distances[np.maximum(mine, 0), at]
+        stays = (mine >= 0) & (own <= distances.min(axis=0)
+                               + KEEP_MARGIN * thresholds[np.maximum(current, 0)])
+        owner = np.where(stays, current, owner)
         sizes = np.bincount(owner, minlength=len(models))[alive]
         if sizes.min() >= smallest or len(alive) == 1:
             return [np.flatnonzero(owner == i) for i in alive], [models[i].name for i in alive]

@@ -9,6 +9,8 @@ arguments, so the whole chain is traced into one program and stays fused.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 
@@ -18,8 +20,10 @@ from .refine import DEFAULT_REFINER, LocalOptimizer
 from .sampling import DEFAULT_SAMPLER, Sampler
 from .scoring import CHUNK, DEFAULT_SCORER, Scorer, live_chunks, score
 
-#: Points drawn per batch for estimators that read the cloud (the box's histogram modes).
+#: Points drawn per support group for estimators that read the cloud (the box's
+#: histogram modes), and the groups of a batch (each group's hypotheses share one).
 SUPPORT = 256
+SUPPORT_GROUPS = 16
 #: Upper bound on (clouds x points x hypotheses) in one step of a batched scan (a few MB):
 #: one vmap over hundreds of clouds spills every step out of cache.
 GROUP_ELEMENTS = 1 << 20
@@ -27,11 +31,18 @@ GROUP_ELEMENTS = 1 << 20
 
 def estimate_batch(cls: type[Model], samples, support, normals=None,
                    estimator: str = "thesis"):
-    """vmap'd estimator: samples (H, k, 3), support (M, 3) and, for the oriented
-    estimator, the samples' normals (H, k, 3) -> thetas (H, P), valid (H,)."""
+    """vmap'd estimator: samples (H, k, 3), support (M, 3) shared, or (G, M, 3) with
+    hypothesis h reading support group h // (H / G) (G divides H), and for the oriented
+    estimator the samples' normals (H, k, 3) -> thetas (H, P), valid (H,)."""
     est = cls.estimator(estimator)
-    return jax.vmap(est.estimate, in_axes=(0, 0 if est.uses_normals else None, None))(
-        samples, normals if est.uses_normals else None, support)
+    one = jax.vmap(est.estimate, in_axes=(0, 0 if est.uses_normals else None, None))
+    if getattr(support, "ndim", 2) == 2:  # (None: an estimator that reads no support)
+        return one(samples, normals if est.uses_normals else None, support)
+    groups, per = support.shape[0], samples.shape[0] // support.shape[0]
+    split = lambda a: None if a is None else a.reshape(groups, per, *a.shape[1:])  # noqa: E731
+    thetas, valid = jax.vmap(one, in_axes=(0, 0 if est.uses_normals else None, 0))(
+        split(samples), split(normals) if est.uses_normals else None, support)
+    return thetas.reshape(samples.shape[0], -1), valid.reshape(-1)
 
 
 def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold,
@@ -50,7 +61,11 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     key_sample, key_support = jax.random.split(key)
     n_sample = n_valid if n_sample is None else n_sample
     idx, distinct = sampler.draw(key_sample, n_sample, batch_size, est.sample_size)
-    support = points[jax.random.randint(key_support, (SUPPORT,), 0, n_valid)]
+    # A support per group of hypotheses: a batch sharing one had all its box offsets
+    # from the same 256 points, and where those missed a thin side face, all missed it.
+    shape = (math.gcd(batch_size, SUPPORT_GROUPS), SUPPORT) if cls.reads_support else \
+        (SUPPORT,)
+    support = points[jax.random.randint(key_support, shape, 0, n_valid)]
     thetas, valid = estimate_batch(cls, points[idx], support,
                                    normals[idx] if est.uses_normals else None, estimator)
     valid &= distinct

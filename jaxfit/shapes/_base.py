@@ -146,6 +146,9 @@ class Model:
     radius_index: ClassVar[int | None] = None
     #: Start in theta of the unit axis (or normal) a user's ``axis_prior`` bounds.
     axis_index: ClassVar[int | None] = None
+    #: Whether the estimators read ``support`` (the kernel then draws one support per
+    #: group of a batch's hypotheses, ``kernel.SUPPORT_GROUPS``; others get one, unread).
+    reads_support: ClassVar[bool] = False
     #: name -> Estimator, filled by ``register``; see ``estimator``.
     estimators: ClassVar[dict[str, Estimator]]
     #: The estimator ``fit`` uses unless told otherwise: the one that measured best.
