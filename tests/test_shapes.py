@@ -234,8 +234,8 @@ def test_sparse_cylinder_at_a_tight_threshold_keeps_its_height():
 def test_thin_base_plate_box_fails_on_few_keys():
     # The lamp's 20 x 20 x 2 cm base plate (2,220 points): its sides hold few points, so
     # one batch's shared 256-point support often missed a side's histogram peak and
-    # every hypothesis placed that face mid-plate: 8 of these 300 keys failed; one
-    # support per group of hypotheses and Box.from_theta's reach check: 1.
+    # every hypothesis placed that face mid-plate: 8 of these 300 keys failed; with one
+    # support per group of hypotheses (kernel.SUPPORT_GROUPS): 1.
     from jaxfit.evaluation.synthetic import composite
 
     points, _, labels = composite("lamp", count=4000, seed=1)
@@ -243,15 +243,3 @@ def test_thin_base_plate_box_fails_on_few_keys():
     failed = [key for key in range(300)
               if jaxfit.fit(plate, "box", key=key).inliers.mean() < 0.9]
     assert len(failed) <= 3, failed
-
-def test_box_cost_counts_each_point_at_its_nearest_face_or_outside():
-    from jaxfit.shapes.box import _box_cost
-
-    near, far, t = np.zeros(3), np.ones(3), 0.1
-    proj = np.array([[0.5, 0.5, 0.02],   # inside, 0.02 from the face z = 0
-                     [0.5, 0.5, 0.5],    # the middle: farther than t from every face
-                     [1.05, 0.5, 0.5],   # outside, 0.05 beyond x = 1
-                     [1.03, 1.04, 0.5]])  # outside two faces: 0.05 from the edge
-    expected = 0.02**2 + t**2 + 0.05**2 + 0.05**2
-    assert _box_cost(proj, near, far, t) == pytest.approx(expected)
-    assert _box_cost(proj, far, near, t) == pytest.approx(expected)  # faces either way

@@ -39,10 +39,6 @@ POLAR_STEPS = 3
 #: The oriented estimator's two normals must be at least 60 degrees apart (sine 0.87): a
 #: box's faces meet at 90, and estimated normals are off by a few degrees.
 ORIENTED_MIN_SIN = 0.87
-#: A far face at the other faces' reach replaces the histogram's peak only where its
-#: box costs at least this fraction less (``from_theta``): the peak is right far more
-#: often, and outliers near a face's continuation can favour a box a little too long.
-REACH_GAIN = 0.1
 #: The faces (axis i, sign) a scan sees of a box resting on its -rotation[:, 2] face, in
 #: the order ``scene_surfaces`` gives them.
 UPPER_FACES = ((0, 1), (0, -1), (1, 1), (1, -1), (2, 1))
@@ -143,27 +139,14 @@ class Box(Model):
         near, far = np.asarray(theta[9:], np.float64), np.empty(3)
         proj = points @ normals.T  # (N, 3)
         face = np.argmin(np.abs(proj - near), axis=1)
-        reach = np.full(3, np.nan)
         for i in range(3):
             far[i] = _opposite_face(proj[~inliers, i], near[i], threshold)
-            # The other faces' inliers show how far the box reaches along n_i: the far
-            # face where no clear peak stands out (hidden or too noisy), and the check
-            # of a peak that cuts the box short (below).
-            others = proj[inliers & (face != i), i]
-            if others.size:
-                lo, hi = g.main_interval(others, g.GAP_THRESHOLDS * threshold)
-                reach[i] = hi if hi - near[i] > near[i] - lo else lo
             if np.isnan(far[i]):
-                far[i] = reach[i]
-        # A thin slab's sides hold few points, and a stray peak near the near face had
-        # cut one to a sliver: where the reach differs, it replaces a peak whose box
-        # costs clearly more (``REACH_GAIN``) over all the points.
-        for i in np.flatnonzero(np.isfinite(reach) & (np.abs(far - reach) > 2 * threshold)):
-            other = far.copy()
-            other[i] = reach[i]
-            if _box_cost(proj, near, other, threshold) < \
-                    (1 - REACH_GAIN) * _box_cost(proj, near, far, threshold):
-                far = other
+                # No clear peak (the far face is hidden or too noisy): the other faces'
+                # inliers still show how far the box reaches along n_i.
+                others = proj[inliers & (face != i), i]
+                lo, hi = g.main_interval(others, g.GAP_THRESHOLDS * threshold)
+                far[i] = hi if hi - near[i] > near[i] - lo else lo
         near, far = _polish_faces(proj, near, far, threshold)
         rotation = g.sign_canonical(normals[:2])
         rotation = np.stack([rotation[0], rotation[1], g.cross3(rotation[0], rotation[1])], 1)
@@ -364,18 +347,6 @@ def _polish_faces(proj, near, far, threshold, rounds: int = 2):
                 if np.count_nonzero(band) >= 3:
                     faces[side, i] = g.median(proj[band, i])
     return faces[0], faces[1]
-
-
-def _box_cost(proj, near, far, threshold):
-    """MSAC cost sum(min(d^2, t^2)) over the points of the box with faces ``near`` and
-    ``far`` (3,) along the normals the projections proj (N, 3) are on."""
-    lo, hi = np.minimum(near, far), np.maximum(near, far)
-    below, above = lo - proj, proj - hi  # (N, 3): > 0 outside that face
-    outside = np.maximum(np.maximum(below, above), 0.0)
-    gap = np.sqrt(np.sum(outside * outside, axis=1))
-    inside = np.minimum(-below, -above).min(axis=1)
-    d = np.where(gap > 0, gap, np.maximum(inside, 0.0))
-    return float(np.minimum(d * d, threshold * threshold).sum())
 
 
 def _opposite_face(proj, near, threshold):
