@@ -243,3 +243,18 @@ def test_thin_base_plate_box_fails_on_few_keys():
     failed = [key for key in range(300)
               if jaxfit.fit(plate, "box", key=key).inliers.mean() < 0.9]
     assert len(failed) <= 3, failed
+
+
+def test_box_without_surface_area_refuses_to_sample_without_a_warning():
+    # A box fitted to a thin post can come back as a segment (two extents 0): its
+    # surface samples are refused by name, not NaN probabilities and a RuntimeWarning.
+    import warnings
+
+    segment = Box(np.zeros(3), np.eye(3), np.array([0.24, 0.0, 0.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="no surface to sample"):
+            segment.sample(10, np.random.default_rng(0))
+    plate = Box(np.zeros(3), np.eye(3), np.array([0.2, 0.2, 0.0]))  # one 0: two faces
+    points, _ = plate.sample(100, np.random.default_rng(0))
+    assert np.allclose(points[:, 2], 0.0)

@@ -168,6 +168,8 @@ class Box(Model):
         """(count, 3) points uniform on the six faces and their outward normals."""
         ext = self._array("extents")
         areas = np.array([ext[1] * ext[2], ext[0] * ext[2], ext[0] * ext[1]]).repeat(2)
+        if not areas.sum() > 0:  # two extents 0 (a segment, a fit's degenerate answer)
+            raise ValueError(f"a box with extents {ext.tolist()} has no surface to sample")
         face = rng.choice(6, size=count, p=areas / areas.sum())
         axis, sign = face // 2, np.where(face % 2, 1.0, -1.0)
         local = (rng.uniform(-0.5, 0.5, (count, 3))) * ext
