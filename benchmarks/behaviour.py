@@ -121,6 +121,8 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, required=True, help="JSON file to write")
     parser.add_argument("--compare", type=Path, help="an earlier run's JSON to check against")
     args = parser.parse_args(argv)
+    # read before writing: --compare and --out may name the same file
+    before = json.loads(args.compare.read_text())["digests"] if args.compare else None
     found, started = {}, time.perf_counter()
     for name, thunk in cases():
         found[name] = digest(thunk())
@@ -129,8 +131,7 @@ def main(argv=None):
     args.out.write_text(json.dumps({"jax": jax.__version__,
                                     "digests": found}, indent=1) + "\n")
     print(f"{len(found)} cases in {time.perf_counter() - started:.1f} s; wrote {args.out}")
-    if args.compare:
-        before = json.loads(args.compare.read_text())["digests"]
+    if before is not None:
         changed = [n for n in sorted(set(before) | set(found)) if before.get(n) != found.get(n)]
         for name in changed:
             print(f"CHANGED {name}: {before.get(name)} -> {found.get(name)}")

@@ -53,3 +53,17 @@ def test_shown_measures_come_from_the_shapes():
     for name, cls in REGISTRY.items():
         assert evaluate.MEASURES[name] == cls.shown_measures
     assert evaluate.MEASURES["sphere"] == ("center_rel", "radius_rel", "mee")
+
+
+def test_behaviour_compare_reads_the_earlier_run_before_writing_over_it(tmp_path, monkeypatch):
+    # `--out F --compare F` (how the committed digests are regenerated) once compared the
+    # new run with itself and always said "identical".
+    import json
+
+    from benchmarks import behaviour
+
+    monkeypatch.setattr(behaviour, "cases", lambda: [("one", lambda: np.arange(3.0))])
+    path = tmp_path / "refit.json"
+    path.write_text(json.dumps({"jax": "x", "digests": {"one": "not this digest"}}))
+    assert behaviour.main(["--out", str(path), "--compare", str(path)]) == 1
+    assert behaviour.main(["--out", str(path), "--compare", str(path)]) == 0
