@@ -36,11 +36,8 @@ def test_one_part_per_primitive_with_the_right_type(decomposed, name):
         part = result.parts[int(np.argmax(counts))]
         assert part.kind == model.name, (part.kind, model.name)
         assert matches(part.model, model, 0.05), (part.model, model)
-        # and the part is that primitive's points: reassignment undid the box cuts' slivers.
-        # Seams leave a few points either side whatever the part's size: the lamp's ball
-        # (~120 points) takes 6-9 of the cone's near its tip on 1-2 of keys 0-29.
-        wrong = np.sum(labels[part.indices] != models.index(model))
-        assert wrong <= max(0.05 * part.indices.size, 10), (wrong, part.indices.size)
+        # and the part is that primitive's points: reassignment undid the box cuts' slivers
+        assert np.mean(labels[part.indices] == models.index(model)) > 0.95
 
 
 @pytest.mark.slow

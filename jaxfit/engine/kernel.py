@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from ..shapes import Model
 from .backend import REFINE_OPTIONS, jit_tuned
 from .refine import DEFAULT_REFINER, LocalOptimizer
-from .sampling import DEFAULT_SAMPLER, Sampler, fold_in, uniform_indices, words
+from .sampling import DEFAULT_SAMPLER, Sampler
 from .scoring import CHUNK, DEFAULT_SCORER, Scorer, live_chunks, score
 
 #: Points drawn per support group for estimators that read the cloud (the box's
@@ -58,14 +58,14 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     with ``top`` the ``top`` best, best first: thetas (top, P), costs (top,), counts (top,).
     """
     est = cls.estimator(estimator)
+    key_sample, key_support = jax.random.split(key)
     n_sample = n_valid if n_sample is None else n_sample
-    idx, distinct = sampler.draw(fold_in(key, 0), n_sample, batch_size, est.sample_size)
+    idx, distinct = sampler.draw(key_sample, n_sample, batch_size, est.sample_size)
     # A support per group of hypotheses: a batch sharing one had all its box offsets
     # from the same 256 points, and where those missed a thin side face, all missed it.
-    groups = math.gcd(batch_size, SUPPORT_GROUPS) if cls.reads_support else 1
-    support = points[uniform_indices(words(fold_in(key, 1), groups * SUPPORT), n_valid)]
-    if cls.reads_support:
-        support = support.reshape(groups, SUPPORT, 3)
+    shape = (math.gcd(batch_size, SUPPORT_GROUPS), SUPPORT) if cls.reads_support else \
+        (SUPPORT,)
+    support = points[jax.random.randint(key_support, shape, 0, n_valid)]
     thetas, valid = estimate_batch(cls, points[idx], support,
                                    normals[idx] if est.uses_normals else None, estimator)
     valid &= distinct
@@ -92,7 +92,7 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
                      sampler: Sampler = DEFAULT_SAMPLER, scorer: Scorer = DEFAULT_SCORER):
     """``batch_best`` for every cloud: points (C, B, 3), normals (C, B, 3) or None,
     n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), bounds (``Bounds``
-    with a leading (C,) axis); batch b of cloud c uses ``sampling.fold_in(cloud_keys[c], b)``.
+    with a leading (C,) axis); batch b of cloud c uses fold_in(cloud_keys[c], b).
     Returns each cloud's ``cls.lo_starts`` best: thetas (C, S, P), costs (C, S),
     counts (C, S), and its valid samples (C,)."""
 
@@ -100,7 +100,7 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
 
     def one(args):
         p, nrm, n, m, k, t, b = args
-        return _batch_best(cls, batch_size, p, n, fold_in(k, batch), t, nrm,
+        return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
                            estimator, cls.lo_starts, m, b, gated, n_chunks, sampler, scorer)
 
     return jax.lax.map(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,

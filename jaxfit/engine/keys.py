@@ -1,7 +1,6 @@
 """Where every random choice of a fit comes from: one key per call, cloud i's key
-``fold_in(key, i)``, its batch b ``sampling.fold_in(fold_in(key, i), b)`` (in the
-kernel), and its normal pool a stream apart (``normals_key``). Results do not depend on
-call order or on the cache."""
+``fold_in(key, i)``, its batch b ``fold_in(fold_in(key, i), b)``, and its normal pool a
+stream apart (``normals_key``). Results do not depend on call order or on the cache."""
 
 from __future__ import annotations
 

@@ -2,8 +2,7 @@
 
 A sampler is a frozen, hashable object (a static argument of the kernel) whose ``draw``
 is traced into the fused kernel. A new sampler (PROSAC, NAPSAC, ...) is one new class
-with a ``draw`` of the same contract. The kernel's random words come from ``words`` and
-``fold_in`` here: a keyed integer hash of a counter.
+with a ``draw`` of the same contract.
 """
 
 from __future__ import annotations
@@ -40,8 +39,8 @@ DEFAULT_SAMPLER = UniformSampler()
 def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     """Indices (H, k) of H minimal samples among the first n_valid points, drawn in O(k)
     each (with replacement), and whether each sample's indices are distinct (H,)."""
-    idx = uniform_indices(words(key, batch_size * sample_size), n_valid)
-    idx = idx.reshape(batch_size, sample_size)
+    idx = uniform_indices(jax.random.bits(key, (batch_size, sample_size), jnp.uint32),
+                          n_valid)
     distinct = jnp.ones(batch_size, bool)
     for i in range(sample_size):
         for j in range(i + 1, sample_size):
@@ -60,30 +59,3 @@ def uniform_indices(bits, n):
     cross_a, cross_b = hi * n_lo, lo * n_hi
     carry = ((cross_a & 0xFFFF) + (cross_b & 0xFFFF) + ((lo * n_lo) >> 16)) >> 16
     return (hi * n_hi + (cross_a >> 16) + (cross_b >> 16) + carry).astype(jnp.int32)
-
-
-def mix32(x):
-    """A bijective 32-bit integer hash with full avalanche (Wellons' ``lowbias32``:
-    xor-shift-multiply), elementwise on uint32 arrays."""
-    x = (x ^ (x >> 16)) * jnp.uint32(0x7FEB352D)
-    x = (x ^ (x >> 15)) * jnp.uint32(0x846CA68B)
-    return x ^ (x >> 16)
-
-
-def words(key, count: int):
-    """(count,) uniform uint32 words from ``key``: each word's counter hashed with the
-    key's first two words (counter-based like threefry, in a few integer operations where
-    each threefry call site compiles for 0.1-0.4 s on the CPU; docs/engine.md)."""
-    k = jax.random.key_data(key).astype(jnp.uint32)
-    return mix32(mix32(jnp.arange(count, dtype=jnp.uint32) ^ k[0]) + k[1])
-
-
-def fold_in(key, data):
-    """The key of ``data`` (an integer scalar) under ``key``, a typed key of the same
-    implementation: ``jax.random.fold_in``'s contract, with ``mix32`` for threefry. Every
-    word of the key's data is mixed with ``data`` (threefry keys have 2, rbg keys 4)."""
-    k = jax.random.key_data(key).astype(jnp.uint32)
-    d = mix32(jnp.asarray(data).astype(jnp.uint32) + jnp.uint32(0x9E3779B9))
-    salts = jnp.arange(k.shape[-1] - 1, dtype=jnp.uint32) * jnp.uint32(0x85EBCA6B)
-    mixed = jnp.concatenate([mix32(k[:1] ^ d), mix32(k[1:] + mix32((d ^ k[0]) + salts))])
-    return jax.random.wrap_key_data(mixed, impl=jax.random.key_impl(key))
