@@ -152,13 +152,12 @@ print(json.dumps({"first": first, "cpu": cpu, "programs": programs}))
 """
 
 
-# Each stored program a first fit calls (cloud keys, kernel, refinement), compiled again
-# alone with JAX's AOT API from the fit's own arguments: CPU seconds of each phase, the
-# optimised program's size, its LAPACK calls and its run time. Cache off (every program
-# is the plain jitted one), refinement compiled in turn.
-SIZES = r"""
+# The head of SIZES and OPTIONS: a first fit (refinement compiled in turn) whose stored
+# programs' calls are kept in ``calls`` (name -> (program, args, kwargs)).
+RECORDED = r"""
 import json, re, statistics, sys, time
 import jax
+import numpy as np
 import jaxfit
 import jaxfit.engine.loop as loop
 from jaxfit import _cache
@@ -170,8 +169,18 @@ def record(self, *args, **kwargs):
     calls.setdefault(self.name, (self, args, kwargs))
     return original(self, *args, **kwargs)
 _cache.Stored.__call__ = record
-points, _, _ = demo_cloud(sys.argv[1], count=2000, outlier_ratio=0.3, seed=0)
-jaxfit.fit(points, sys.argv[1], key=0)
+def first_fit(shape, count):
+    points, _, _ = demo_cloud(shape, count=count, outlier_ratio=0.3, seed=0)
+    jaxfit.fit(points, shape, key=0)
+"""
+
+
+# Each stored program a first fit calls (cloud keys, kernel, refinement), compiled again
+# alone with JAX's AOT API from the fit's own arguments: CPU seconds of each phase, the
+# optimised program's size, its LAPACK calls and its run time. Cache off (every program
+# is the plain jitted one), refinement compiled in turn.
+SIZES = RECORDED + r"""
+first_fit(sys.argv[1], 2000)
 out = {}
 for name, (stored, args, kwargs) in calls.items():
     jax.clear_caches()
@@ -367,24 +376,9 @@ def sizes_table(rows) -> str:
 # option sets of OPTION_VARIANTS added to each program's own options (backend.py), in
 # turn and in one process: compile CPU s, median run ms, and whether the outputs are
 # bit for bit those of the program's own options.
-OPTIONS = r"""
-import json, statistics, sys, time
-import jax
-import numpy as np
-import jaxfit
-import jaxfit.engine.loop as loop
-from jaxfit import _cache
-from jaxfit.evaluation.synthetic import demo_cloud
-loop.COMPILE_AHEAD = False
-calls = {}
-original = _cache.Stored.__call__
-def record(self, *args, **kwargs):
-    calls.setdefault(self.name, (self, args, kwargs))
-    return original(self, *args, **kwargs)
-_cache.Stored.__call__ = record
+OPTIONS = RECORDED + r"""
 shape, count, variants = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3])
-points, _, _ = demo_cloud(shape, count=count, outlier_ratio=0.3, seed=0)
-jaxfit.fit(points, shape, key=0)
+first_fit(shape, count)
 out = {}
 for name, (stored, args, kwargs) in calls.items():
     if "seed_keys" in name:
