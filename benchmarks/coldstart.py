@@ -172,6 +172,9 @@ _cache.Stored.__call__ = record
 def first_fit(shape, count):
     points, _, _ = demo_cloud(shape, count=count, outlier_ratio=0.3, seed=0)
     jaxfit.fit(points, shape, key=0)
+def dynamic(stored, args, kwargs):  # the arguments its compiled program takes
+    return ([a for i, a in enumerate(args) if i not in stored.static_positions],
+            {k: v for k, v in kwargs.items() if k not in stored.static_names})
 """
 
 
@@ -189,8 +192,7 @@ for name, (stored, args, kwargs) in calls.items():
     lowered = traced.lower(); cpu.append(time.process_time())
     compiled = lowered.compile(); cpu.append(time.process_time())
     text = compiled.as_text()
-    dyn = [a for i, a in enumerate(args) if i not in stored.static_positions]
-    dyn_kw = {k: v for k, v in kwargs.items() if k not in stored.static_names}
+    dyn, dyn_kw = dynamic(stored, args, kwargs)
     jax.block_until_ready(compiled(*dyn, **dyn_kw))
     runs = []
     for _ in range(15):
@@ -371,7 +373,6 @@ def sizes_table(rows) -> str:
     return "\n".join(lines)
 
 
-
 # The kernel and the refinement of a first fit compiled again alone, under the XLA CPU
 # option sets of OPTION_VARIANTS added to each program's own options (backend.py), in
 # turn and in one process: compile CPU s, median run ms, and whether the outputs are
@@ -383,8 +384,7 @@ out = {}
 for name, (stored, args, kwargs) in calls.items():
     if "seed_keys" in name:
         continue
-    dyn = [a for i, a in enumerate(args) if i not in stored.static_positions]
-    dyn_kw = {k: v for k, v in kwargs.items() if k not in stored.static_names}
+    dyn, dyn_kw = dynamic(stored, args, kwargs)
     compiled, reference = {}, None
     for label, extra in variants.items():
         jax.clear_caches()

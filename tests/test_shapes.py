@@ -229,7 +229,6 @@ def test_sparse_cylinder_at_a_tight_threshold_keeps_its_height():
     assert result.num_inliers > 0.99 * 1000
 
 
-
 @pytest.mark.slow
 def test_thin_base_plate_box_fails_on_few_keys():
     # The lamp's 20 x 20 x 2 cm base plate (2,220 points): its sides hold few points, so
