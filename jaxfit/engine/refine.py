@@ -57,10 +57,12 @@ class LocalOptimizer:
 class LevenbergMarquardt(LocalOptimizer):
     """Rounds of Levenberg-Marquardt steps on the points near the model (or the shape's
     closed-form ``least_squares`` fit where it has one), each round kept only if it
-    lowers the cost over all points: at most ``max_rounds`` rounds of ``steps`` steps."""
+    lowers the cost over all points: at most ``max_rounds`` rounds of ``steps`` steps
+    (5: each round starts again from the new inliers, so more steps in a round buy
+    nothing; docs/engine.md, "LM steps per round")."""
 
     max_rounds: int = 20
-    steps: int = 10
+    steps: int = 5
 
     def refine(self, cls, theta, points, n_valid, threshold, bounds, normals, n_chunks,
                rows, scorer):
@@ -108,7 +110,7 @@ def solve_spd(a, b):
 
 
 def _refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds: int = 20,
-                  steps: int = 10, bounds=None, normals=None, n_chunks=None,
+                  steps: int = 5, bounds=None, normals=None, n_chunks=None,
                   rows: int | None = None, scorer: Scorer = DEFAULT_SCORER):
     """Local optimisation of a hypothesis theta (P,) on padded points (B, 3).
 
