@@ -30,6 +30,11 @@ LO_POINTS = 2048
 #: LM_GAIN (relative) or after LM_REFUSALS refused steps in a row.
 LM_GAIN = 1e-5
 LM_REFUSALS = 5
+#: LO rounds at most, and LM steps at most in each: a round starts again from its new
+#: inliers, so steps past the fifth polished a fit the next round redoes (docs/engine.md,
+#: "LM steps per round").
+LO_ROUNDS = 20
+LM_STEPS = 5
 #: LO rounds refit on the points within this many thresholds of the current model: a
 #: biased model refitted on exactly its own inliers keeps its bias; the wider band lets
 #: it move.
@@ -57,12 +62,10 @@ class LocalOptimizer:
 class LevenbergMarquardt(LocalOptimizer):
     """Rounds of Levenberg-Marquardt steps on the points near the model (or the shape's
     closed-form ``least_squares`` fit where it has one), each round kept only if it
-    lowers the cost over all points: at most ``max_rounds`` rounds of ``steps`` steps
-    (5: each round starts again from the new inliers, so more steps in a round buy
-    nothing; docs/engine.md, "LM steps per round")."""
+    lowers the cost over all points: at most ``max_rounds`` rounds of ``steps`` steps."""
 
-    max_rounds: int = 20
-    steps: int = 5
+    max_rounds: int = LO_ROUNDS
+    steps: int = LM_STEPS
 
     def refine(self, cls, theta, points, n_valid, threshold, bounds, normals, n_chunks,
                rows, scorer):
@@ -109,8 +112,9 @@ def solve_spd(a, b):
     return jax.lax.fori_loop(0, size, eliminate, augmented)[:, size]
 
 
-def _refine_theta(cls: type[Model], theta, points, n_valid, threshold, max_rounds: int = 20,
-                  steps: int = 5, bounds=None, normals=None, n_chunks=None,
+def _refine_theta(cls: type[Model], theta, points, n_valid, threshold,
+                  max_rounds: int = LO_ROUNDS, steps: int = LM_STEPS, bounds=None,
+                  normals=None, n_chunks=None,
                   rows: int | None = None, scorer: Scorer = DEFAULT_SCORER):
     """Local optimisation of a hypothesis theta (P,) on padded points (B, 3).
 

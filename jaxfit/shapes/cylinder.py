@@ -83,7 +83,7 @@ class Cylinder(Model):
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
         # (unit in float64: a float32 kernel's axis is unit to ~1e-7 only, which a
-        # bounding box's sqrt(1 - a_i^2) turns into ~1e-3 of the radius near an axis)
+        # bounding box's sqrt(1 - a_i^2) turns into up to ~3e-4 of the radius near an axis)
         axis = g.sign_canonical(g.unit(theta[3:6]))
         t, _ = g.axial_radial(points[inliers], theta[:3], axis)
         lo, hi = g.main_interval(t, g.GAP_THRESHOLDS * threshold)
