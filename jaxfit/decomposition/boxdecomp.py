@@ -535,11 +535,16 @@ def _bound_volumes(points, member, floor) -> np.ndarray:
     outer = (points[:, :, None] * points[:, None, :]).reshape(len(points), 9)
     scatter = (weights.T @ outer).reshape(-1, 3, 3) - mean[:, :, None] * mean[:, None, :]
     _, axes = np.linalg.eigh(scatter)  # (C, 3, 3), columns are the principal axes
+    # One coordinate at a time over a contiguous (C, S) mask: masked (S, C, 3) blocks
+    # had been 90 % of this function (the same maxima and minima: they are exact).
+    inside = np.ascontiguousarray(member.T)  # (C, S)
+    principal = np.moveaxis(points @ axes, 2, 0)  # (3, C, S)
     volumes = []
-    for coords in (points[:, None, :], (points @ axes).transpose(1, 0, 2)):
-        hi = np.where(member[..., None], coords, -np.inf).max(axis=0)  # (C, 3)
-        lo = np.where(member[..., None], coords, np.inf).min(axis=0)
-        volumes.append(np.prod(np.maximum(hi - lo, floor), axis=1))
+    for coords in (points.T, principal):  # coordinate j of every point: (S,) or (C, S)
+        extents = np.stack([np.where(inside, c, -np.inf).max(axis=1)
+                            - np.where(inside, c, np.inf).min(axis=1) for c in coords],
+                           axis=1)  # (C, 3)
+        volumes.append(np.prod(np.maximum(extents, floor), axis=1))
     return np.where(count > 0, np.minimum(*volumes), 0.0)
 
 
