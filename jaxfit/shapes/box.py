@@ -135,7 +135,9 @@ class Box(Model):
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
-        normals = np.asarray(theta[:9], np.float64).reshape(3, 3)
+        # The normals made orthonormal in float64 (a float32 kernel's are to ~1e-7 only).
+        theta = cls.canonicalize(np.asarray(theta, np.float64), np)
+        normals = theta[:9].reshape(3, 3)
         near, far = np.asarray(theta[9:], np.float64), np.empty(3)
         proj = points @ normals.T  # (N, 3)
         face = np.argmin(np.abs(proj - near), axis=1)

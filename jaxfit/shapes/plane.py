@@ -5,6 +5,7 @@ theta = (nx, ny, nz, offset); three points per sample.
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar
 
 import jax.numpy as jnp
@@ -69,8 +70,12 @@ class Plane(Model):
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
-        normal = g.sign_canonical(theta[:3])
-        offset = theta[3] * (1.0 if normal @ theta[:3] > 0 else -1.0)
+        # Unit in float64, the offset with it (as Cylinder's axis: a float32 kernel's
+        # normal is unit to ~1e-7 only, which the patch's box amplifies near an axis).
+        theta = np.asarray(theta, np.float64)
+        length = math.sqrt(theta[:3] @ theta[:3])
+        normal = g.sign_canonical(theta[:3] / length)
+        offset = theta[3] / length * (1.0 if normal @ theta[:3] > 0 else -1.0)
         # The patch: around the inliers' median, out to where they thin out (strays in
         # the plane's slab far from the patch are sparse and are left outside). In the
         # plane's own 2-D coordinates: two 1-D medians, not a gather of (M, 3) rows and
@@ -92,9 +97,11 @@ class Plane(Model):
         # order, so they are not redone as elementwise sums), the medians and the
         # patch's radius are segment versions over all clouds (``_geometry``).
         thetas = np.asarray(thetas, np.float64)
-        normals = g.sign_canonical(thetas[:, :3])
+        # (each squared length by stacked matmul: the same dot product as theta @ theta)
+        lengths = np.sqrt(np.matmul(thetas[:, None, :3], thetas[:, :3, None])[:, 0, 0])
+        normals = g.sign_canonical(thetas[:, :3] / lengths[:, None])
         flips = np.where((normals * thetas[:, :3]).sum(axis=1) > 0, 1.0, -1.0)  # (signs
-        offsets = thetas[:, 3] * flips  # of +-|n|^2, as exact as normal @ theta[:3]'s)
+        offsets = thetas[:, 3] / lengths * flips  # of +-|n|^2, as exact as normal @ theta[:3]'s)
         in_plane = list(g.frames(normals)[:, :, :2])  # (3, 2) each
         counts = np.add.reduceat(inliers, np.cumsum([0] + [len(p) for p in points[:-1]]),
                                  dtype=np.int64)
