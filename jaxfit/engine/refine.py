@@ -62,16 +62,23 @@ class LocalOptimizer:
 class LevenbergMarquardt(LocalOptimizer):
     """Rounds of Levenberg-Marquardt steps on the points near the model (or the shape's
     closed-form ``least_squares`` fit where it has one), each round kept only if it
-    lowers the cost over all points: at most ``max_rounds`` rounds of ``steps`` steps."""
+    lowers the cost over all points: at most ``max_rounds`` rounds of ``steps`` steps
+    (None: the shape's ``lm_steps``, else ``LM_STEPS``)."""
 
     max_rounds: int = LO_ROUNDS
-    steps: int = LM_STEPS
+    steps: int | None = None
 
     def refine(self, cls, theta, points, n_valid, threshold, bounds, normals, n_chunks,
                rows, scorer):
         return refine_theta(cls, theta, points, n_valid, threshold, self.max_rounds,
-                            self.steps, bounds=bounds, normals=normals, n_chunks=n_chunks,
-                            rows=rows, scorer=scorer)
+                            self.steps_for(cls), bounds=bounds, normals=normals,
+                            n_chunks=n_chunks, rows=rows, scorer=scorer)
+
+    def steps_for(self, cls: type[Model]) -> int:
+        """The LM steps per round this refiner takes on shape ``cls``."""
+        if self.steps is not None:
+            return self.steps
+        return LM_STEPS if cls.lm_steps is None else cls.lm_steps
 
 
 #: The default local optimiser.

@@ -158,6 +158,10 @@ class Model:
     #: basin of the MSAC cost. Each start costs a whole refinement, most of fit_batch's
     #: time on small clouds (measurements: docs/shapes.md).
     lo_starts: ClassVar[int] = 4
+    #: Levenberg-Marquardt steps per LO round (None: the refiner's default,
+    #: ``engine.refine.LM_STEPS``); a shape whose rounds converge in fewer sets fewer,
+    #: since a group of clouds steps until its slowest has (docs/engine.md).
+    lm_steps: ClassVar[int | None] = None
     #: field name -> (trailing shape, kind), the kind saying how it maps under scaling.
     field_specs: ClassVar[dict[str, tuple[tuple[int, ...], str]]]
 

@@ -45,6 +45,8 @@ class Cylinder(Model):
     radius_index: ClassVar[int] = 6
     axis_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 7
+    # Three steps a round are as accurate as five on the thesis suite (docs/engine.md).
+    lm_steps: ClassVar[int] = 3
     min_hypotheses: ClassVar[int] = 8192  # see Model.min_hypotheses
     field_specs: ClassVar = {
         "center": ((3,), POINT),
