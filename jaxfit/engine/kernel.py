@@ -133,16 +133,9 @@ def _refine_many(cls, thetas, costs, points, n_valid, threshold, bounds, normals
     had let an out-of-bounds one win under an axis_prior."""
 
     n_chunks = live_chunks(jnp.max(n_valid))  # one loop bound for all clouds
-
-    def refine(theta, p, n, t, b, nrm):
-        return refiner.refine(cls, theta, p, n, t, b, nrm, n_chunks, rows, scorer)
-
-    starts = jax.vmap(refine, in_axes=(0, None, None, None, None, None))
-    # A while_loop under vmap runs until its slowest member stops: small groups keep
-    # one slow cloud from holding all the others for max_rounds.
-    theta, cost, count = jax.lax.map(lambda a: starts(*a),
-                                     (thetas, points, n_valid, threshold, bounds, normals),
-                                     batch_size=group(points.shape[0], points.shape[1] * 64))
+    theta, cost, count = refiner.refine_batch(
+        cls, thetas, points, n_valid, threshold, bounds, normals, n_chunks, rows, scorer,
+        group(points.shape[0], points.shape[1] * 64))
     cost = jnp.where(jnp.isfinite(costs), cost, jnp.inf)
     best = jnp.argmin(cost, axis=1)[:, None]
     pick = lambda a: jnp.take_along_axis(a, best.reshape(best.shape + (1,) * (a.ndim - 2)),  # noqa: E731
