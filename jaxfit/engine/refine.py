@@ -50,7 +50,8 @@ class LocalOptimizer:
     ``bounds`` (one cloud's ``Bounds``) must hold for the result; with ``normals``
     (B, 3) inliers are gated on them; ``n_chunks`` as in ``scoring.score``; ``rows`` the
     points the steps may read (``lo_rows``). It must never return a hypothesis of
-    higher ``scorer`` cost than the one it was given.
+    higher ``scorer`` cost than the one it was given. ``refine_batch`` (all clouds of a
+    call; this class maps ``refine`` over them) may be overridden with the same results.
     """
 
     def refine(self, cls, theta, points, n_valid, threshold, bounds, normals, n_chunks,
