@@ -422,7 +422,7 @@ POINTS = st.one_of(
     clouds(),
     clouds(plant=0).map(lambda c: c.tolist()),
     clouds(plant=0).map(_quiet(lambda c: c.astype(np.float32))),
-    clouds(plant=0).map(lambda c: jax.numpy.asarray(c, jax.numpy.float32)),
+    clouds(plant=0).map(_quiet(lambda c: jax.numpy.asarray(c, jax.numpy.float32))),
     clouds().map(lambda c: c[:, :2]),
     clouds().map(lambda c: c[None]),
     hnp.arrays(_DTYPES, hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=4)),
