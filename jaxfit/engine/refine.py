@@ -287,8 +287,6 @@ def compacted(cls: type[Model], thetas, points, n_valid, threshold, max_rounds: 
     to the front, and only the groups of ``group`` clouds that hold them run it (a vmap'd
     while_loop over rounds had run every group until its slowest cloud stopped: after two
     rounds ~4 % of the spheres go on, but half the groups of 16 had one)."""
-    count, starts = thetas.shape[:2]
-
     def one_round(carry, c):
         """Cloud c's S starts' carries (S, ...) after their next round (unchanged where
         not going)."""
