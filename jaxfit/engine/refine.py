@@ -274,10 +274,13 @@ def lo_rounds(cls: type[Model], points, n_valid, threshold, max_rounds: int, ste
         return (jnp.where(better, candidate, th), jnp.where(better, new_cost, cost),
                 jnp.where(better, new_count, count), better, k + 1)
 
-    def going(carry):
-        return carry[3] & (carry[4] <= max_rounds)
+    return lo_round, partial(lo_due, max_rounds=max_rounds)
 
-    return lo_round, going
+
+def lo_due(carry, max_rounds: int):
+    """Whether the carry (``lo_start``; any leading axes) is due another LO round: its
+    last round was kept and the cap is not reached."""
+    return carry[3] & (carry[4] <= max_rounds)
 
 
 def compacted(cls: type[Model], thetas, points, n_valid, threshold, max_rounds: int,
@@ -302,11 +305,12 @@ def compacted(cls: type[Model], thetas, points, n_valid, threshold, max_rounds: 
         return jax.vmap(start)(carry)
 
     def alive(carry):  # (C,): whether any of a cloud's starts is due another round
-        return jnp.any(carry[3] & (carry[4] <= max_rounds), axis=1)
+        return jnp.any(lo_due(carry, max_rounds), axis=1)
 
     def phase(carry):
-        order = jnp.argsort(~alive(carry), stable=True)  # going clouds first
-        groups = (jnp.sum(alive(carry)) + group - 1) // group
+        going = alive(carry)
+        order = jnp.argsort(~going, stable=True)  # going clouds first
+        groups = (jnp.sum(going) + group - 1) // group
 
         def run(g, carry):
             clouds = jax.lax.dynamic_slice(order, (g * group,), (group,))
