@@ -23,7 +23,7 @@ from jaxfit.engine import (
     UniformSampler,
     loop,
 )
-from jaxfit.engine.refine import LM_STEPS, LO_ROUNDS, LocalOptimizer
+from jaxfit.engine.refine import LocalOptimizer
 from jaxfit.engine.scoring import score_one
 from jaxfit.evaluation.synthetic import demo_cloud
 from jaxfit.shapes import REGISTRY, Cylinder, Plane, Sphere
@@ -236,12 +236,3 @@ def test_refinement_compiled_ahead_is_the_program_the_loop_runs(monkeypatch):
     again, lowered_again = _lowered_fitting(LevenbergMarquardt(max_rounds=17), False,
                                             monkeypatch)
     assert lowered_again == 0 and same(again, ahead)
-
-
-def test_the_refiner_reads_each_shape_rounds_and_steps_unless_given():
-    default = LevenbergMarquardt()
-    assert (default.rounds_for(Sphere), default.steps_for(Sphere)) == (1, 3)
-    assert (default.rounds_for(Plane), default.steps_for(Plane)) == (LO_ROUNDS, LM_STEPS)
-    given = LevenbergMarquardt(max_rounds=7, steps=2)
-    assert all((given.rounds_for(cls), given.steps_for(cls)) == (7, 2)
-               for cls in REGISTRY.values())

@@ -79,16 +79,15 @@ class LocalOptimizer:
 class LevenbergMarquardt(LocalOptimizer):
     """Rounds of Levenberg-Marquardt steps on the points near the model (or the shape's
     closed-form ``least_squares`` fit where it has one), each round kept only if it
-    lowers the cost over all points: at most ``max_rounds`` rounds (None: the shape's
-    ``lo_rounds``, else ``LO_ROUNDS``) of ``steps`` steps (None: the shape's ``lm_steps``,
-    else ``LM_STEPS``)."""
+    lowers the cost over all points: at most ``max_rounds`` rounds of ``steps`` steps
+    (None: the shape's ``lm_steps``, else ``LM_STEPS``)."""
 
-    max_rounds: int | None = None
+    max_rounds: int = LO_ROUNDS
     steps: int | None = None
 
     def refine(self, cls, theta, points, n_valid, threshold, bounds, normals, n_chunks,
                rows, scorer):
-        return refine_theta(cls, theta, points, n_valid, threshold, self.rounds_for(cls),
+        return refine_theta(cls, theta, points, n_valid, threshold, self.max_rounds,
                             self.steps_for(cls), bounds=bounds, normals=normals,
                             n_chunks=n_chunks, rows=rows, scorer=scorer)
 
@@ -102,14 +101,8 @@ class LevenbergMarquardt(LocalOptimizer):
         if thetas.shape[0] <= group:
             return super().refine_batch(cls, thetas, points, n_valid, threshold, bounds,
                                         normals, n_chunks, rows, scorer, group)
-        return compacted(cls, thetas, points, n_valid, threshold, self.rounds_for(cls),
+        return compacted(cls, thetas, points, n_valid, threshold, self.max_rounds,
                          self.steps_for(cls), bounds, normals, n_chunks, rows, scorer, group)
-
-    def rounds_for(self, cls: type[Model]) -> int:
-        """The LO rounds at most this refiner runs on shape ``cls``."""
-        if self.max_rounds is not None:
-            return self.max_rounds
-        return LO_ROUNDS if cls.lo_rounds is None else cls.lo_rounds
 
     def steps_for(self, cls: type[Model]) -> int:
         """The LM steps per round this refiner takes on shape ``cls``."""

@@ -162,10 +162,6 @@ class Model:
     #: ``engine.refine.LM_STEPS``); a shape whose rounds converge in fewer sets fewer,
     #: since a group of clouds steps until its slowest has (docs/engine.md).
     lm_steps: ClassVar[int | None] = None
-    #: LO rounds at most (None: the refiner's default, ``engine.refine.LO_ROUNDS``); a
-    #: shape whose first round already reaches the fit sets fewer, since most clouds'
-    #: next round is refused yet costs a whole refit (docs/engine.md).
-    lo_rounds: ClassVar[int | None] = None
     #: field name -> (trailing shape, kind), the kind saying how it maps under scaling.
     field_specs: ClassVar[dict[str, tuple[tuple[int, ...], str]]]
 

@@ -40,8 +40,6 @@ class Sphere(Model):
     lo_starts: ClassVar[int] = 1
     # Three steps a round are as accurate as five on the thesis suite (docs/engine.md).
     lm_steps: ClassVar[int] = 3
-    # One LO round: the thesis suite's errors are the same as at 2 or 20 (docs/engine.md).
-    lo_rounds: ClassVar[int] = 1
     field_specs: ClassVar = {"center": ((3,), POINT), "radius": ((), LENGTH)}
 
     @staticmethod
