@@ -58,7 +58,10 @@ def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None,
         if found is not None:
             return found if distances else found[1]
     queries = points if queries is None else queries
-    found = cKDTree(points).query(queries, k=k, workers=workers)
+    # (sliding-midpoint splits, no node shrinking: the same neighbours, and the tree over
+    # 1e5 points built in half the time, which was most of 2048 queries' cost)
+    found = cKDTree(points, balanced_tree=False, compact_nodes=False).query(
+        queries, k=k, workers=workers)
     return found if distances else found[1]
 
 

@@ -236,3 +236,58 @@ def test_refinement_compiled_ahead_is_the_program_the_loop_runs(monkeypatch):
     again, lowered_again = _lowered_fitting(LevenbergMarquardt(max_rounds=17), False,
                                             monkeypatch)
     assert lowered_again == 0 and same(again, ahead)
+
+
+def _plane_cloud(n: int, outliers: float, seed: int = 0):
+    """(n, 3) float32 points in the unit ball: a noisy plane patch with a share of
+    uniform outliers, and the inlier threshold."""
+    rng = np.random.default_rng(seed)
+    m = int(n * (1 - outliers))
+    on = np.column_stack([rng.uniform(-0.5, 0.5, (m, 2)), rng.normal(0, 0.002, m)])
+    off = rng.uniform(-0.5, 0.5, (n - m, 3))
+    return np.vstack([on, off]).astype(np.float32), 0.006
+
+
+def test_wide_scan_steps_score_as_the_plain_sum():
+    # Over a bucket of more than SCREEN_POINTS points a scan step of few hypotheses spans
+    # several chunks (``scan_chunk``): the same costs (float32 rounding) and counts as
+    # the sums in float64, and small buckets keep CHUNK.
+    from jaxfit.engine import scoring
+
+    assert scoring.scan_chunk(1024, 1) == scoring.CHUNK
+    assert scoring.scan_chunk(1 << 17, 256) == scoring.CHUNK
+    assert scoring.scan_chunk(1 << 17, 16) == scoring.STEP_PAIRS // 16
+    assert scoring.scan_chunk(8192, 1) == 8192  # (at most the bucket)
+    points, threshold = _plane_cloud(7000, 0.3)
+    padded = np.zeros((8192, 3), np.float32)
+    padded[:7000] = points
+    thetas = np.array([[0, 0, 1, 0], [0, 0, 1, 0.1], [0.6, 0, 0.8, 0]], np.float32)
+    cost, count = scoring.score(Plane, jnp.asarray(thetas), jnp.ones(3, bool),
+                                jnp.asarray(padded), 7000, threshold)
+    r2 = (points.astype(np.float64) @ thetas[:, :3].T.astype(np.float64) + thetas[:, 3]) ** 2
+    np.testing.assert_allclose(np.asarray(cost), np.minimum(r2, threshold**2).sum(axis=0),
+                               rtol=1e-4)
+    np.testing.assert_array_equal(np.asarray(count), (r2 < threshold**2).sum(axis=0))
+
+
+def test_screened_kernel_returns_the_all_points_cost_of_the_batch_best(monkeypatch):
+    # In a bucket over SCREEN_POINTS only the SCREEN_KEEP best on a spread subset are
+    # scored on all points: what the kernel returns is its pick's cost and inlier count
+    # over every point, and the pick is as good as the best of the whole batch scored
+    # on all points (the screen's premise: the ranking is settled on a few thousand).
+    import jax
+
+    from jaxfit.engine import kernel, scoring
+
+    points, threshold = _plane_cloud(3000, 0.5, seed=1)
+    padded = np.zeros((4096, 3), np.float32)
+    padded[:3000] = points
+    args = (jnp.asarray(padded), 3000, jax.random.key(7), jnp.float32(threshold))
+    assert padded.shape[0] > scoring.SCREEN_POINTS
+    theta, cost, count, _ = kernel.batch_best(Plane, 64, *args)
+    full_cost, full_count = score_one(Plane, theta, args[0], 3000, threshold)
+    np.testing.assert_allclose(float(cost), float(full_cost), rtol=1e-6)
+    assert int(count) == int(full_count) > 1000
+    monkeypatch.setattr(kernel, "SCREEN_POINTS", 1 << 20)  # (traced anew: unscreened)
+    unscreened = jax.jit(kernel._batch_best, static_argnums=(0, 1))(Plane, 64, *args)
+    assert float(cost) <= float(unscreened[1]) * (1 + 1e-6)

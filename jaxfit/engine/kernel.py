@@ -18,7 +18,16 @@ from ..shapes import Model
 from .backend import REFINE_OPTIONS, jit_tuned
 from .refine import DEFAULT_REFINER, LocalOptimizer
 from .sampling import DEFAULT_SAMPLER, Sampler
-from .scoring import CHUNK, DEFAULT_SCORER, Scorer, live_chunks, score
+from .scoring import (
+    CHUNK,
+    DEFAULT_SCORER,
+    SCREEN_KEEP,
+    SCREEN_POINTS,
+    Scorer,
+    live_chunks,
+    score,
+    spread_rows,
+)
 
 #: Points drawn per support group for estimators that read the cloud (the box's
 #: histogram modes), and the groups of a batch (each group's hypotheses share one).
@@ -53,7 +62,10 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     their normals (B, 3) for the oriented estimator). Samples are drawn among the first
     ``n_sample`` points (default all n_valid). Hypotheses outside the user's ``bounds``
     (``Bounds``) are invalid; ``gated``: scores gate on normals at
-    ``bounds.normal_cos``. ``n_chunks``: as in ``scoring.score``.
+    ``bounds.normal_cos``. ``n_chunks``: as in ``scoring.score``. In a bucket of more
+    than ``SCREEN_POINTS`` points only the ``SCREEN_KEEP`` (or ``top``) best on a spread
+    subset (``screened``) are scored on all points; the costs returned are always over
+    all n_valid points.
     Returns the best (theta (P,), cost, inlier count) and the number of valid samples;
     with ``top`` the ``top`` best, best first: thetas (top, P), costs (top,), counts (top,).
     """
@@ -72,14 +84,38 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     if bounds is not None:
         valid &= jax.vmap(lambda theta: bounds.admits(cls, theta))(thetas)
     gate = (normals, bounds.normal_cos) if gated else None
-    costs = score(cls, thetas, valid, points, n_valid, threshold, counts=False, gate=gate,
-                  n_chunks=n_chunks, scorer=scorer)
-    _, best = jax.lax.top_k(-costs, 1 if top is None else top)
-    _, counts = score(cls, thetas[best], valid[best], points, n_valid, threshold, gate=gate,
-                      n_chunks=n_chunks, scorer=scorer)
+    wanted = 1 if top is None else top
+    keep = min(batch_size, max(SCREEN_KEEP, wanted))
+    if points.shape[0] > SCREEN_POINTS and keep < batch_size:
+        # (the bucket is static: small clouds' programs are not changed by this)
+        kept = screened(cls, thetas, valid, points, n_valid, threshold, gate, keep, scorer)
+        costs, counts = score(cls, thetas[kept], valid[kept], points, n_valid, threshold,
+                              gate=gate, n_chunks=n_chunks, scorer=scorer)
+        _, order = jax.lax.top_k(-costs, wanted)
+        best, costs, counts = kept[order], costs[order], counts[order]
+    else:
+        costs = score(cls, thetas, valid, points, n_valid, threshold, counts=False,
+                      gate=gate, n_chunks=n_chunks, scorer=scorer)
+        _, best = jax.lax.top_k(-costs, wanted)
+        costs = costs[best]
+        _, counts = score(cls, thetas[best], valid[best], points, n_valid, threshold,
+                          gate=gate, n_chunks=n_chunks, scorer=scorer)
     if top is None:
-        return thetas[best[0]], costs[best[0]], counts[0], jnp.sum(valid)
-    return thetas[best], costs[best], counts, jnp.sum(valid)
+        return thetas[best[0]], costs[0], counts[0], jnp.sum(valid)
+    return thetas[best], costs, counts, jnp.sum(valid)
+
+
+def screened(cls: type[Model], thetas, valid, points, n_valid, threshold, gate, keep: int,
+             scorer: Scorer = DEFAULT_SCORER):
+    """Indices (keep,) of the hypotheses thetas (H, P) of lowest cost on SCREEN_POINTS
+    rows of points (B, 3) spread over the first n_valid (``spread_rows``); ``gate`` as
+    in ``score``."""
+    rows = spread_rows(n_valid, SCREEN_POINTS)
+    gate = None if gate is None else (gate[0][rows], gate[1])
+    rough = score(cls, thetas, valid, points[rows], jnp.minimum(n_valid, SCREEN_POINTS),
+                  threshold, counts=False, gate=gate, n_chunks=SCREEN_POINTS // CHUNK,
+                  scorer=scorer)
+    return jax.lax.top_k(-rough, keep)[1]
 
 
 _STAGES = ("sampler", "scorer")

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..shapes import Model
-from .scoring import CHUNK, DEFAULT_SCORER, Scorer, score_one
+from .scoring import CHUNK, DEFAULT_SCORER, Scorer, score_one, spread_rows
 
 #: An LO round counts as progress only if it lowers the cost by this fraction (on clean
 #: data every round shaved off float noise, and the rounds ran to max_rounds).
@@ -120,15 +120,6 @@ def lo_rows(n: int) -> int:
     two (>= CHUNK) that holds n, whichever is smaller (so a small cloud's steps do not
     spend half their work on its bucket's padding)."""
     return min(LO_POINTS, max(CHUNK, 1 << (n - 1).bit_length()))
-
-
-def spread_rows(n_valid, count: int):
-    """(count,) row indices the LM steps read: all of the first n_valid rows if they fit
-    (then the rows past n_valid are padding), else count rows evenly spread over them
-    (an integer stride would leave the tail of a cloud unseen)."""
-    step = jnp.maximum(jnp.asarray(n_valid, jnp.float32) / count, 1.0)
-    spread = jnp.minimum((jnp.arange(count) * step).astype(jnp.int32), n_valid - 1)
-    return jnp.where(n_valid >= count, spread, jnp.arange(count))
 
 
 def solve_spd(a, b):
