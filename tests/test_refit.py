@@ -174,3 +174,33 @@ def test_fit_returns_the_least_squares_fit_of_all_its_inliers(shape, monkeypatch
 def test_final_refit_option_is_checked():
     with pytest.raises(ValueError, match="final_refit must be True or False"):
         jaxfit.fit(np.random.default_rng(0).normal(size=(100, 3)), "sphere", final_refit=1)
+
+
+@pytest.mark.parametrize("shape", [s for s in REGISTRY if REGISTRY[s].theta_jacobian])
+def test_theta_jacobian_is_the_residuals_derivative(shape):
+    # The analytic rows the refit's Jacobian is made of, against central differences of
+    # theta_residual at a valid theta and at one off the valid set (a non-unit axis).
+    cls = REGISTRY[shape]
+    points, theta, _ = noisy(shape, 200, seed=3)
+    q = tuple(points.T)
+    for at in (theta, theta * 1.02):
+        rows = cls.theta_jacobian(at, q, np)
+        assert rows.shape == (cls.num_params, len(points))
+        for k, e in enumerate(np.eye(cls.num_params) * 1e-6):
+            central = (cls.theta_residual(at + e, q, np) - cls.theta_residual(at - e, q, np)) / 2e-6
+            np.testing.assert_allclose(rows[k], central, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("shape", [s for s in REGISTRY if REGISTRY[s].theta_jacobian])
+def test_analytic_jacobian_refits_as_the_differences(shape, monkeypatch):
+    # The final refit with the shape's theta_jacobian lands where the forward differences
+    # land (their step's error, ~1e-7 of the Jacobian, is far below the noise).
+    cls = REGISTRY[shape]
+    points, theta, _ = noisy(shape, 5000, seed=4)
+    start = theta + np.random.default_rng(5).normal(0, 1e-3, theta.shape)
+    analytic = refine.final_refit(cls, start, points, 3 * SIGMA)
+    monkeypatch.setattr(cls, "theta_jacobian", None)
+    differences = refine.final_refit(cls, start, points, 3 * SIGMA)
+    np.testing.assert_allclose(analytic[0], differences[0], atol=1e-8)
+    np.testing.assert_allclose(analytic[1], differences[1], rtol=1e-9)
+    assert analytic[1] < analytic[2]  # (it moved)

@@ -357,14 +357,20 @@ def _chunks(n: int):
 def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None):
     """MSAC cost () of theta (P,) over points (N, 3), the loop's measure (a point gated
     out on its normal costs t^2), and with ``canonical`` the normal equations of the
-    least-squares fit on its inliers: J^T J (P, P) and J^T r (P,), J by forward
-    differences through ``canonical``. One pass, ``FINAL_CHUNK`` points at a time, in
-    float64 (the chunk's columns contiguous: a boolean gather of (N, 3) rows had cost as
-    much as the differences)."""
+    least-squares fit on its inliers: J^T J (P, P) and J^T r (P,), J through
+    ``canonical`` (the shape's ``theta_jacobian`` times the projection's own Jacobian,
+    else forward differences of the residuals). One pass, ``FINAL_CHUNK`` points at a
+    time, in float64 (the chunk's columns contiguous: a boolean gather of (N, 3) rows had
+    cost as much as the differences)."""
     t2, cost, size = threshold * threshold, 0.0, theta.size
     jtj, jtr = np.zeros((size, size)), np.zeros(size)
     moved = [] if canonical is None else [canonical(theta + FINAL_STEP * e)
                                           for e in np.eye(size)]
+    # (P, P) d canonical / d theta, by differences of P-vectors: with it the points'
+    # Jacobian is one analytic pass, where the differences take P residual passes
+    chain = None if not moved or cls.theta_jacobian is None else \
+        (np.stack(moved) - theta).T / FINAL_STEP
+    step = 1.0 if chain is not None else FINAL_STEP  # (the differences' rows are * step)
     for part in _chunks(len(points)):
         block = np.ascontiguousarray(points[part].T)  # (3, n)
         q = tuple(block)
@@ -379,13 +385,18 @@ def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None
         if moved:
             keep = np.flatnonzero(inside)
             qi, ri = tuple(block.take(keep, axis=1)), r.take(keep)
-            jac = np.empty((size, len(keep)))  # (P, M): each row one contiguous write
-            for k, m in enumerate(moved):
-                np.subtract(cls.theta_residual(m, qi, np), ri, out=jac[k])
+            if chain is not None:  # (the projection applied to the sums, at the end)
+                jac = cls.theta_jacobian(theta, qi, np)  # (P, M)
+            else:
+                jac = np.empty((size, len(keep)))  # (P, M): each row one contiguous write
+                for k, m in enumerate(moved):
+                    np.subtract(cls.theta_residual(m, qi, np), ri, out=jac[k])
             jtj += jac @ jac.T
             jtr += jac @ ri
-    jtj /= FINAL_STEP * FINAL_STEP
-    jtr /= FINAL_STEP
+    if chain is not None:
+        jtj, jtr = chain.T @ jtj @ chain, chain.T @ jtr
+    jtj /= step * step
+    jtr /= step
     return cost, jtj, jtr
 
 

@@ -23,6 +23,9 @@ needs as class-level functions:
   set (unit axes, positive radius) after a refinement step. Differentiable: refinement
   differentiates the residual through it; with ``xp=numpy`` it serves the final float64
   refit (a shape whose ``canonicalize`` takes no ``xp`` is not refitted there).
+- ``theta_jacobian(theta, p, xp) -> (P, ...)`` (optional, else None): the derivatives
+  of ``theta_residual`` by each entry of theta at theta (not through ``canonicalize``);
+  the final float64 refit takes its Jacobian from it instead of P forward differences.
 - ``least_squares(points, weights) -> theta`` (optional, else None): the weighted
   geometric least-squares fit (points (S, 3), weights (S,)) in closed form; refinement
   uses it instead of Levenberg-Marquardt steps.
@@ -210,6 +213,7 @@ class Model:
         return theta
 
     least_squares = None  # see the module docstring
+    theta_jacobian = None  # see the module docstring
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):  # pragma: no cover - abstract

@@ -55,6 +55,10 @@ class Plane(Model):
         return theta[0] * p[0] + theta[1] * p[1] + theta[2] * p[2] + theta[3]
 
     @staticmethod
+    def theta_jacobian(theta, p, xp):
+        return xp.stack([p[0], p[1], p[2], xp.ones_like(p[0])])
+
+    @staticmethod
     def canonicalize(theta, xp=jnp):
         normal, length = g.safe_normalize(theta[:3], xp)
         return xp.concatenate([normal, theta[3:] / xp.where(length > 0, length, 1.0)])

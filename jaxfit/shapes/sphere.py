@@ -70,6 +70,12 @@ class Sphere(Model):
         return xp.sqrt(dx * dx + dy * dy + dz * dz) - theta[3]
 
     @staticmethod
+    def theta_jacobian(theta, p, xp):
+        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
+        inv = -1.0 / xp.maximum(xp.sqrt(dx * dx + dy * dy + dz * dz), 1e-300)
+        return xp.stack([dx * inv, dy * inv, dz * inv, xp.full_like(dx, -1.0)])
+
+    @staticmethod
     def canonicalize(theta, xp=jnp):
         return xp.concatenate([theta[:3], xp.abs(theta[3:])])
 
