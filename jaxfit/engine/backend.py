@@ -33,6 +33,21 @@ HYPOTHESIS_BLOCKS = 2
 BLOCK_MIN = 256
 
 
+def map_clouds(fn, args, batch_size: int):
+    """``jax.lax.map(fn, args, batch_size=batch_size)`` over the leading (C,) axis of the
+    pytree ``args`` (None leaves pass through), without the loop where it would take one
+    step: for C = 1 ``fn`` called on the one cloud, for C = batch_size its ``vmap``. A
+    single fit's program then has no scan and no batching over clouds to trace, lower
+    and compile, and a call of a few clouds no scan."""
+    count = jax.tree.leaves(args)[0].shape[0]
+    if count == 1:
+        out = fn(jax.tree.map(lambda a: a[0], args))
+        return jax.tree.map(lambda a: a[None], out)
+    if count == batch_size:
+        return jax.vmap(fn)(args)
+    return jax.lax.map(fn, args, batch_size=batch_size)
+
+
 def on_cpu() -> bool:
     """Whether the engine runs on the CPU backend."""
     return jax.default_backend() == "cpu"

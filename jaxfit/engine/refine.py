@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..shapes import Model
+from .backend import map_clouds
 from .scoring import CHUNK, DEFAULT_SCORER, Scorer, score_one, spread_rows
 
 #: An LO round counts as progress only if it lowers the cost by this fraction (on clean
@@ -70,9 +71,8 @@ class LocalOptimizer:
             return self.refine(cls, theta, p, n, t, b, nrm, n_chunks, rows, scorer)
 
         starts = jax.vmap(one, in_axes=(0, None, None, None, None, None))
-        return jax.lax.map(lambda a: starts(*a),
-                           (thetas, points, n_valid, threshold, bounds, normals),
-                           batch_size=group)
+        return map_clouds(lambda a: starts(*a),
+                          (thetas, points, n_valid, threshold, bounds, normals), group)
 
 
 @dataclasses.dataclass(frozen=True)
