@@ -33,10 +33,10 @@ HYPOTHESIS_BLOCKS = 2
 BLOCK_MIN = 256
 
 
-def map_clouds(fn, args, batch_size: int):
+def map_leading(fn, args, batch_size: int | None = None):
     """``jax.lax.map(fn, args, batch_size=batch_size)`` over the leading (C,) axis of the
     pytree ``args`` (None leaves pass through), without the loop where it would take one
-    step: for C = 1 ``fn`` called on the one cloud, for C = batch_size its ``vmap``. A
+    step: for C = 1 ``fn`` called on the one row, for C = batch_size its ``vmap``. A
     single fit's program then has no scan and no batching over clouds to trace, lower
     and compile, and a call of a few clouds no scan."""
     count = jax.tree.leaves(args)[0].shape[0]

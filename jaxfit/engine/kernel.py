@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from ..shapes import Model
-from .backend import REFINE_OPTIONS, jit_tuned, map_clouds
+from .backend import REFINE_OPTIONS, jit_tuned, map_leading
 from .refine import DEFAULT_REFINER, LocalOptimizer
 from .sampling import DEFAULT_SAMPLER, Sampler
 from .scoring import (
@@ -139,8 +139,8 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
         return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
                            estimator, cls.lo_starts, m, b, gated, n_chunks, sampler, scorer)
 
-    return map_clouds(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,
-                            bounds), group(points.shape[0], CHUNK * batch_size))
+    return map_leading(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,
+                             bounds), group(points.shape[0], CHUNK * batch_size))
 
 
 batch_best_many = jit_tuned(_batch_best_many,

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..shapes import Model
-from .backend import map_clouds
+from .backend import map_leading
 from .scoring import CHUNK, DEFAULT_SCORER, Scorer, score_one, spread_rows
 
 #: An LO round counts as progress only if it lowers the cost by this fraction (on clean
@@ -65,14 +65,17 @@ class LocalOptimizer:
         other arguments with a leading (C,) axis, normals None or (C, B, 3)), ``group``
         clouds side by side (a divisor of C): (theta (C, S, P), cost (C, S), count (C, S)).
         A while_loop under vmap runs until its slowest member stops, so small groups keep
-        one slow cloud from holding all the others."""
+        one slow cloud from holding all the others; a cloud's starts run one after the
+        other (no ``vmap`` of the while_loop to trace: docs/engine.md, "Session 14")."""
 
         def one(theta, p, n, t, b, nrm):
             return self.refine(cls, theta, p, n, t, b, nrm, n_chunks, rows, scorer)
 
-        starts = jax.vmap(one, in_axes=(0, None, None, None, None, None))
-        return map_clouds(lambda a: starts(*a),
-                          (thetas, points, n_valid, threshold, bounds, normals), group)
+        def starts(theta, *rest):
+            return map_leading(lambda t: one(t, *rest), theta)
+
+        return map_leading(lambda a: starts(*a),
+                           (thetas, points, n_valid, threshold, bounds, normals), group)
 
 
 @dataclasses.dataclass(frozen=True)
