@@ -291,3 +291,24 @@ def test_screened_kernel_returns_the_all_points_cost_of_the_batch_best(monkeypat
     monkeypatch.setattr(kernel, "SCREEN_POINTS", 1 << 20)  # (traced anew: unscreened)
     unscreened = jax.jit(kernel._batch_best, static_argnums=(0, 1))(Plane, 64, *args)
     assert float(cost) <= float(unscreened[1]) * (1 + 1e-6)
+
+
+def test_map_leading_equals_lax_map_at_every_count():
+    # The loop-free cases (one row: called directly; as many rows as the batch: vmapped)
+    # give what lax.map gives, None leaves included.
+    import jax
+
+    from jaxfit.engine.backend import map_leading
+
+    def fn(args):
+        x, none, y = args
+        assert none is None
+        return jnp.sum(x * y), x[::-1]
+
+    for count, batch in ((1, 4), (4, 4), (8, 4), (6, None)):
+        xs = jnp.arange(count * 3, dtype=jnp.float32).reshape(count, 3)
+        ys = jnp.linspace(0.5, 2.0, count)
+        got = jax.jit(lambda a, b, n=batch: map_leading(fn, (a, None, b), n))(xs, ys)
+        want = jax.lax.map(fn, (xs, None, ys), batch_size=batch)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
