@@ -65,14 +65,18 @@ class LocalOptimizer:
         other arguments with a leading (C,) axis, normals None or (C, B, 3)), ``group``
         clouds side by side (a divisor of C): (theta (C, S, P), cost (C, S), count (C, S)).
         A while_loop under vmap runs until its slowest member stops, so small groups keep
-        one slow cloud from holding all the others; a cloud's starts run one after the
-        other (no ``vmap`` of the while_loop to trace: docs/engine.md, "Session 14")."""
+        one slow cloud from holding all the others. A single start (the sphere's) is
+        refined without a ``vmap`` of the while_loop to trace; several keep theirs, the
+        same vector arithmetic as ``compacted``'s (a map over them summed the box's and
+        the plane's refinements in another order: docs/engine.md, "Session 14")."""
 
         def one(theta, p, n, t, b, nrm):
             return self.refine(cls, theta, p, n, t, b, nrm, n_chunks, rows, scorer)
 
         def starts(theta, *rest):
-            return map_leading(lambda t: one(t, *rest), theta)
+            if theta.shape[0] == 1:
+                return map_leading(lambda t: one(t, *rest), theta)
+            return jax.vmap(one, in_axes=(0, None, None, None, None, None))(theta, *rest)
 
         return map_leading(lambda a: starts(*a),
                            (thetas, points, n_valid, threshold, bounds, normals), group)
