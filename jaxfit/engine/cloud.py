@@ -27,6 +27,11 @@ DEFAULT_THRESHOLD_FRACTION = 0.005
 NORMAL_POOL = 2048
 #: Neighbours of the PCA normals estimated for a fit.
 NORMAL_NEIGHBOURS = 16
+#: In a cloud of more points the pool's neighbours are looked for among the pool and
+#: this many random draws of the cloud's points: a KD-tree over all of 1e5 points had
+#: been ~40 % of an oriented fit, and a neighbourhood over a third of the points is still
+#: a small patch of the surface (docs/engine.md, "Session 14").
+NORMAL_SUPPORT = 1 << 15
 
 
 def default_threshold(sides) -> float:
@@ -75,6 +80,8 @@ class Cloud:
     threshold: float  # in the cloud's units
     bounds: Bounds  # the user's bounds, in the cloud's units
     wanted: np.ndarray | None = None  # indices whose normals are still to be estimated
+    # (S,) sorted indices of the points their neighbours are taken from (None: all)
+    support: np.ndarray | None = None
 
     @functools.cached_property
     def gated(self) -> bool:
@@ -109,7 +116,7 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
     if threshold is None:
         threshold = default_threshold(hi - lo)
     threshold = _checks.positive(threshold, "threshold")
-    pool = wanted = None
+    pool = wanted = support = None
     if not (uses_normals or bounds.gated):
         normals = None
     elif normals is None and bounds.gated:  # the gate reads every point's normal
@@ -121,8 +128,13 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
             pool_key = jax.random.key_data(normals_key(_checks.prng_key(key), index))
             rng = np.random.default_rng(np.asarray(pool_key))
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
+            if len(cloud) > NORMAL_SUPPORT:  # (the pool and NORMAL_SUPPORT draws, distinct)
+                taken = np.zeros(len(cloud), bool)
+                taken[pool] = True
+                taken[rng.integers(0, len(cloud), NORMAL_SUPPORT)] = True
+                support = np.flatnonzero(taken)
         wanted = np.arange(len(cloud)) if pool is None else pool
-    return Cloud(cloud, normals, pool, center, scale, threshold, bounds, wanted)
+    return Cloud(cloud, normals, pool, center, scale, threshold, bounds, wanted, support)
 
 
 def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[Cloud] | None:
@@ -184,7 +196,9 @@ def estimate_normals(clouds: list[Cloud]):
     if todo:
         from ..normals import normals_at_many
 
-        found = normals_at_many([c.points for c in todo], [c.wanted for c in todo],
-                                [min(NORMAL_NEIGHBOURS, len(c.points)) for c in todo])
+        sources = [c.points if c.support is None else c.points[c.support] for c in todo]
+        at = [c.wanted if c.support is None else np.searchsorted(c.support, c.wanted)
+              for c in todo]
+        found = normals_at_many(sources, at, [min(NORMAL_NEIGHBOURS, len(s)) for s in sources])
         for cloud, normals in zip(todo, found, strict=True):
             cloud.normals, cloud.wanted = normals, None
