@@ -537,11 +537,9 @@ def compatible(model: Model, points, normals, threshold: float, cos_max: float) 
     near = np.flatnonzero(model.distance(points) < threshold)
     if near.size == 0:
         return near
-    # The residual's slope along each unit normal is its cosine with the surface normal
-    # (one central difference, where ``Model.surface_normal`` takes three).
-    _, slope = type(model).residual_slope(model.theta(), tuple(points[near].T),
-                                          tuple(normals[near].T), np, 0.1 * threshold)
-    return near[np.abs(slope) >= cos_max]
+    # (one central difference, where ``Model.surface_normal`` takes three)
+    cosines = model.normal_cosines(points[near], normals[near], 0.1 * threshold)
+    return near[np.abs(cosines) >= cos_max]
 
 
 def support(model: Model, points, normals, threshold: float, cos_max: float,

@@ -448,3 +448,16 @@ def test_large_cloud_normals_come_from_a_support_and_are_no_worse():
     assert on.sum() > 1000
     assert np.median(angles(c.normals)) <= np.median(angles(everywhere))
     assert np.median(angles(c.normals)) < 5.0
+
+
+def test_normal_gate_keeps_the_far_faces_of_a_box():
+    """A gated box's final inliers pass the gate on its six faces: the kernel's three
+    planes had given the far faces' points a near face's normal, dropping about half."""
+    from jaxfit.evaluation.scenarios import make
+
+    case = make("box", "RN", 0.5, seed=3)
+    kwargs = dict(threshold=0.01 * case.size, normals=case.normals)
+    plain = jaxfit.fit(case.points, "box", **kwargs)
+    gated = jaxfit.fit(case.points, "box", normal_angle=30, **kwargs)
+    assert plain.inliers[case.inliers].mean() > 0.95
+    assert gated.inliers[case.inliers].mean() > 0.98 * plain.inliers[case.inliers].mean()

@@ -149,6 +149,8 @@ def result(cls: type[Model], cloud: Cloud, theta, drawn, status,
     theta = np.asarray(theta, np.float64)
     agree = agreeing(cls, theta, cloud)
     model = bounded(cls, theta, cloud.unit, unit_threshold, True if agree is None else agree)
+    if agree is not None:  # (the gate, as the distance below, on the bounded primitive)
+        agree = np.abs(model.normal_cosines(cloud.unit, cloud.normals)) >= cloud.bounds.normal_cos
     model = model.rescaled(cloud.scale, cloud.center)
     # Final inliers are judged against the bounded primitive the user gets back.
     distance = model.distance(cloud.points)

@@ -199,6 +199,15 @@ class Model:
             return cls.theta_residual(theta, p, np), along / (2 * step)
         return jax.jvp(lambda *c: cls.theta_residual(theta, c, jnp), tuple(p), tuple(m))
 
+    def normal_cosines(self, points, normals, step: float = SLOPE_STEP):
+        """(N,) cosine between normals (N, 3) (unit, either sign) and the normal of the
+        surface ``residual`` measures (a box's six faces) at points (N, 3): the normal
+        gate's measure on this model, by one central difference of ``step``. (On a box
+        the kernel's three planes give the far faces' points the wrong normal.)"""
+        p, m = components(as_points(points)), components(as_points(normals))
+        along = central_difference(lambda q: self.residual(np.stack(q, axis=1)), p, m, step)
+        return along / (2 * step)
+
     def surface_normal(self, points, step: float = SLOPE_STEP):
         """Unit normals (N, 3) of the surface ``residual`` measures (a box's six faces)
         near points (N, 3): its gradient by central differences of ``step``; the
