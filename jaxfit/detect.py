@@ -61,7 +61,7 @@ import numpy as np
 from . import _checks
 from .engine import FitOptions, default_threshold, fit_batch
 from .io.inputs import converted
-from .normals import column_bounds, distinct_inverse, distinct_rows, pair_normals
+from .normals import column_bounds, distinct_inverse, distinct_rows, kd_tree, pair_normals
 from .shapes import Model, trimesh_scene
 from .shapes._base import short
 
@@ -306,10 +306,8 @@ def _subsample_spacing(tree, distinct: np.ndarray) -> float:
 def median_spacing(points: np.ndarray) -> float:
     """Median distance from each distinct point of points (N, 3) to its nearest other one
     (copies of a point do not make the spacing 0); 0 if fewer than two are distinct."""
-    from scipy.spatial import cKDTree
-
     distinct = distinct_rows(points)
-    return _spacing(cKDTree(distinct), distinct) if len(distinct) >= 2 else 0.0
+    return _spacing(kd_tree(distinct), distinct) if len(distinct) >= 2 else 0.0
 
 
 def capped_pairs(tree, points: np.ndarray, radius: float) -> np.ndarray:
@@ -414,11 +412,8 @@ class RadiusGraph:
            radius: float | None = None) -> RadiusGraph:
         """The graph of points (N, 3) at ``radius``, or at ``connect`` times their
         median spacing."""
-        from scipy.spatial import cKDTree
-
         distinct, inverse = distinct_inverse(points)
-        # (sliding-midpoint splits, no node shrinking: faster to build, as fast to query)
-        tree = cKDTree(distinct, balanced_tree=False, compact_nodes=False)
+        tree = kd_tree(distinct)
         m = len(distinct)
         spacing = np.nan
         if radius is None and m >= 2:

@@ -44,6 +44,16 @@ _EPS = 1e-9
 SMALL_QUERY = 4096
 
 
+def kd_tree(points: np.ndarray):
+    """The ``scipy.spatial.cKDTree`` over points (N, 3) that every exact neighbour search
+    of the package queries: sliding-midpoint splits and no node shrinking, the same
+    answers as the default tree (the search is exact) from a tree built in about half
+    the time (over 1e5 points most of 2048 queries' cost; docs/engine.md, "Session 14")."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points, balanced_tree=False, compact_nodes=False)
+
+
 def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None,
         workers: int = -1, distances: bool = False):
     """Indices (M, k) of the k nearest points of points (N, 3) to each query (M, 3)
@@ -51,17 +61,12 @@ def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None,
     on ``workers`` threads (-1: all cores); with ``distances``, (distances (M, k),
     indices). Few queries in a large cloud (``few_queries``) are answered from the points
     near them (``knn_near``), the same neighbours up to ties, without a tree over all."""
-    from scipy.spatial import cKDTree
-
     if queries is not None and few_queries(len(queries), len(points)):
         found = knn_near(points, k, queries, workers)
         if found is not None:
             return found if distances else found[1]
     queries = points if queries is None else queries
-    # (sliding-midpoint splits, no node shrinking: the same neighbours, and the tree over
-    # 1e5 points built in half the time, which was most of 2048 queries' cost)
-    found = cKDTree(points, balanced_tree=False, compact_nodes=False).query(
-        queries, k=k, workers=workers)
+    found = kd_tree(points).query(queries, k=k, workers=workers)
     return found if distances else found[1]
 
 
@@ -212,14 +217,12 @@ def _radii(points, k: int, queries, origin) -> tuple[float, np.ndarray, np.ndarr
     3) from how that distance grows with the rank. The base is a quarter of the least
     radius, or more to keep the queries within 2^28 cells of the origin; it is 0 where
     every sampled point and query coincide."""
-    from scipy.spatial import cKDTree
-
     rng = np.random.default_rng(0)
     picked = np.sort(rng.integers(0, len(points), max(k, len(points) // SUBSAMPLE)))
     sub = points[picked[np.r_[True, picked[1:] != picked[:-1]]]]  # (distinct: a bound)
     rank = min(SUBSAMPLE_RANK, len(sub))
     ranks = [max(1, rank // 2), rank, min(k, len(sub))]
-    half, far, bounds = cKDTree(sub).query(queries, k=ranks)[0].T
+    half, far, bounds = kd_tree(sub).query(queries, k=ranks)[0].T
     if len(sub) < k:
         bounds = np.full(len(queries), np.inf)
     growth = np.log(far[half > 0] / half[half > 0])  # log(2) / d for d dimensions
@@ -373,12 +376,10 @@ def _neighbours(points, near, queries, k: int, distinct: bool, workers: int):
     """(distances (M, k), indices (M, k) into pool, pool) of the k nearest of
     pool = points[near] (with ``distinct``: its distinct points) to each query (M, 3);
     distances inf where pool has fewer than k points."""
-    from scipy.spatial import cKDTree
-
     pool = distinct_rows(points[near]) if distinct else points[near]
     if len(pool) < k:
         return np.full((len(queries), k), np.inf), np.zeros((len(queries), k), np.int64), pool
-    dist, hood = cKDTree(pool).query(queries, k=k, workers=workers)
+    dist, hood = kd_tree(pool).query(queries, k=k, workers=workers)
     return dist.reshape(len(queries), k), hood.reshape(len(queries), k), pool
 
 

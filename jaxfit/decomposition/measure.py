@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..evaluation.twosided import closed_surface
+from ..normals import kd_tree
 
 __all__ = ["SURFACE_SAMPLES", "EXPLAINED", "SPLIT_MARGIN", "Scorer", "mean_distance",
            "parts_score"]
@@ -52,10 +53,8 @@ class Scorer:
     built once, and every surface sample comes from ``numpy.random.default_rng(seed)``."""
 
     def __init__(self, points, seed: int = 0):
-        from scipy.spatial import cKDTree  # lazily, as the rest of the package
-
         self.points = np.asarray(points, np.float64)
-        self.tree = cKDTree(self.points)
+        self.tree = kd_tree(self.points)
         self.diagonal = float(np.linalg.norm(np.ptp(self.points, axis=0)))
         self._rng = np.random.default_rng(seed)
         # The cloud's spacing: the mean distance of (an even subset of) its points to

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..normals import kd_tree
+
 __all__ = ["compare", "volumetric_iou", "surface_distances", "coverage", "winding_numbers",
            "inside_mesh", "solid_angles", "union_contains", "union_surface", "closed_surface",
            "mesh_distances", "sample_triangles", "triangles", "ConvexSolid", "oriented_box"]
@@ -351,12 +353,10 @@ def mesh_distances(tri, points, samples, faces_of) -> np.ndarray:
     and the ``CANDIDATES`` nearest triangle centroids (small ones may hold none). Exact
     wherever the nearest triangle is a candidate; never above the nearest sample's
     distance."""
-    from scipy.spatial import cKDTree
-
     k = min(CANDIDATES, len(samples))
-    by_sample = faces_of[cKDTree(samples).query(points, k=k)[1].reshape(len(points), k)]
+    by_sample = faces_of[kd_tree(samples).query(points, k=k)[1].reshape(len(points), k)]
     j = min(CANDIDATES, len(tri))
-    by_centre = cKDTree(tri.mean(axis=1)).query(points, k=j)[1].reshape(len(points), j)
+    by_centre = kd_tree(tri.mean(axis=1)).query(points, k=j)[1].reshape(len(points), j)
     candidates = np.concatenate([by_sample, by_centre], axis=1)
     out = np.empty(len(points))
     step = max(1, BLOCK // candidates.shape[1])
@@ -377,8 +377,6 @@ def _to_union(models, points, union_points, tol: float) -> np.ndarray:
     sample spacings (the nearest surface of the holding solid is on the union's surface,
     so L is exact), else U (the point sits where solids overlap).
     """
-    from scipy.spatial import cKDTree
-
     points = _points(points)
     distances = [m.distance(points) for m in models]
     out = np.min(distances, axis=0)
@@ -390,7 +388,7 @@ def _to_union(models, points, union_points, tol: float) -> np.ndarray:
     deep = depth > tol
     if deep.any():
         inner, lower = points[deep], depth[deep]
-        upper = cKDTree(union_points).query(inner)[0]
+        upper = kd_tree(union_points).query(inner)[0]
         area = sum(float(m.surface_area()) for m in models)
         spacing = np.sqrt(area / len(union_points))
         out[deep] = np.where(upper - lower <= 2.0 * spacing, lower, upper)
@@ -449,14 +447,12 @@ def coverage(points, models, *, seed=0, samples: int = SURFACE_SAMPLES,
     union's surface (``union_surface``, ``samples`` points from ``seed``) with no cloud
     point within ``radius`` times the cloud's bounding-box diagonal: ``uncovered`` over
     the union and ``uncovered_per_model`` (M,) (NaN for a model with nothing kept)."""
-    from scipy.spatial import cKDTree
-
     points = _points(points)
     models = list(models)
     diagonal = _diagonal(points)
     surface, owner = union_surface(models, samples, np.random.default_rng(seed),
                                    OUTWARD * diagonal)
-    far = cKDTree(points).query(surface)[0] > radius * diagonal
+    far = kd_tree(points).query(surface)[0] > radius * diagonal
     per = [float(far[owner == i].mean()) if (owner == i).any() else float("nan")
            for i in range(len(models))]
     return {"uncovered": float(far.mean()), "uncovered_per_model": per,
@@ -496,12 +492,11 @@ def compare(mesh_or_points, models, *, seed=0, samples: int = VOLUME_SAMPLES,
                                     OUTWARD * diagonal)
     out = {"diagonal": diagonal, "union_surface_kept": len(union_points) / surface_samples}
     if tri is None:
-        from scipy.spatial import cKDTree
 
         rng = np.random.default_rng(object_seed)
         keep = cloud if len(cloud) <= surface_samples else cloud[
             rng.choice(len(cloud), surface_samples, replace=False)]
-        tree = cKDTree(cloud)
+        tree = kd_tree(cloud)
         out.update(surface_distances(keep, lambda q: tree.query(q)[0], models, union_points,
                                      diagonal, tol))
         out.update(coverage(cloud, models, seed=union_seed, samples=surface_samples,
