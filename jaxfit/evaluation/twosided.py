@@ -492,7 +492,6 @@ def compare(mesh_or_points, models, *, seed=0, samples: int = VOLUME_SAMPLES,
                                     OUTWARD * diagonal)
     out = {"diagonal": diagonal, "union_surface_kept": len(union_points) / surface_samples}
     if tri is None:
-
         rng = np.random.default_rng(object_seed)
         keep = cloud if len(cloud) <= surface_samples else cloud[
             rng.choice(len(cloud), surface_samples, replace=False)]
