@@ -319,7 +319,7 @@ def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None,
     if len(few):
         k = min(k, m)
         hood = (knn(points, k, points[few]) if tree is None
-                else tree.query(points[few], k=k)[1])
+                else tree.query(points[few], k=k, workers=-1)[1])
         out[few] = pca_normals(points, np.reshape(hood, (len(few), k)))
     return out
 
