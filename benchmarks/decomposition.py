@@ -21,6 +21,10 @@ listed with that reason and left out of the means. Tables: ``summary.md`` (parts
 times, as before) and ``vs_coacd.md``; per model ``vs_coacd.json``, and for the models
 in ``PREVIEWS`` ``vs_coacd.png`` (the mesh, jaxfit's primitives, CoACD's hulls, their
 boxes).
+
+``--keys K`` runs instead both methods with keys 0..K-1 on the well-defined meshes
+(``keys.md``, ``keys.json``): one key's table is one draw of the fits, and the PSDA's
+vIoU moves with it (docs/decomposition.md, "The PSDA over keys").
 """
 
 from __future__ import annotations
@@ -72,14 +76,22 @@ def main():
                         help="comma-separated subset of: " + ", ".join(MODELS))
     parser.add_argument("--no-coacd", action="store_true",
                         help="only the PSDA outputs (summary.md, gain_sweep.md, previews)")
+    parser.add_argument("--keys", type=int, metavar="K",
+                        help="instead: both methods with keys 0..K-1 on the meshes with a "
+                             "well-defined solid, scored against the mesh (keys.md)")
     args = parser.parse_args()
     names = [n.strip() for n in args.models.split(",") if n.strip()]
     unknown = sorted(set(names) - set(MODELS))
     if unknown:
         parser.error(f"unknown models {unknown}; expected some of {list(MODELS)}")
+    if args.keys is not None and (args.keys < 1 or args.no_coacd):
+        parser.error("--keys takes a positive count and runs alone (not with --no-coacd)")
     if not DATA.is_dir():
         raise SystemExit(f"no shared data at {DATA}")
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if args.keys is not None:
+        key_spread(names, args.keys)
+        return
     for name in names:
         result, cpu = decompose_model(name)
         if not args.no_coacd:
@@ -165,6 +177,77 @@ def sweep():
         lines.append(f"| {gain:.2f} | {len(tree.leaves)} | {time.perf_counter() - start:.2f} |")
         print(lines[-1], flush=True)
     (RESULTS / "gain_sweep.md").write_text("\n".join(lines) + "\n")
+
+
+# ----- the spread over keys ------------------------------------------------------------
+def key_spread(names, count: int) -> None:
+    """Both methods on each well-defined mesh of ``names`` (CoACD's hulls at vIoU ≥
+    ``WELL_DEFINED`` in its vs_coacd.json; a mesh without one is left out, named) with
+    keys 0..count-1 on the same 20,000 points, each scored against the mesh as in
+    vs_coacd.md. Writes keys.json and keys.md: per mesh and key the parts, vIoU and
+    Chamfer; per mesh the mean and the worst; the means over meshes of the per-mesh means
+    beside CoACD's (its key-0 run: CoACD's pieces do not depend on jaxfit's key)."""
+    coacd, skipped = {}, []
+    for name in names:
+        path = RESULTS / name / "vs_coacd.json"
+        row = json.loads(path.read_text()) if path.exists() else None
+        if row is None:
+            skipped.append(f"{name} (no vs_coacd.json: run the comparison first)")
+        elif row["coacd"]["viou"] < WELL_DEFINED:
+            skipped.append(f"{name} (hulls' vIoU {row['coacd']['viou']:.3f}: not well defined)")
+        else:
+            coacd[name] = row
+    out = {}
+    for name, row in coacd.items():
+        mesh = load_mesh(DATA / MODELS[name])
+        points = load_source(DATA / MODELS[name], num_points=NUM_POINTS, seed=0)
+        out[name] = {}
+        for method in ("thesis", "measured"):
+            runs = []
+            for key in range(count):
+                parts = row["jaxfit"]["parts"]  # (main's max_parts: the PSDA's key-0 count)
+                result = (decompose(points, gain=0.96, key=key) if method == "thesis" else
+                          decompose(points, method="measured", max_parts=parts, key=key))
+                scored = twosided.compare(mesh, [p.model for p in result.parts], seed=0)
+                runs.append({"key": key, "parts": len(result.parts),
+                             "viou": float(scored["viou"]),
+                             "chamfer": float(scored["chamfer"])})
+                print(f"{name} {method} key {key}: {runs[-1]['parts']} parts, vIoU "
+                      f"{runs[-1]['viou']:.3f}, Chamfer {runs[-1]['chamfer']:.2%}", flush=True)
+            out[name][method] = runs
+    (RESULTS / "keys.json").write_text(json.dumps(
+        {"keys": count, "skipped": skipped, "runs": out}, indent=1))
+    lines = [f"# PSDA and method=\"measured\" over keys 0-{count - 1}", "",
+             "Written by `python -m benchmarks.decomposition --keys "
+             f"{count}`: the same 20,000 points of each mesh (seed 0), decomposed with "
+             "each key (the fits' random draws), scored against the mesh as in vs_coacd.md "
+             "(vIoU of 40,000 Monte-Carlo points; two-sided Chamfer over the diagonal). The "
+             "measured method with max_parts the PSDA's key-0 part count, as in vs_coacd.md.", "",
+             "| mesh | method | vIoU per key | mean vIoU | worst | mean Chamfer | "
+             "CoACD hulls vIoU / Chamfer |", "|---|---|---|---|---|---|---|"]
+    for name, methods in out.items():
+        hulls = coacd[name]["coacd"]
+        for method, runs in methods.items():
+            v = [r["viou"] for r in runs]
+            lines.append(f"| {name} | {method} | {', '.join(f'{x:.3f}' for x in v)} | "
+                         f"{np.mean(v):.3f} | {min(v):.3f} | "
+                         f"{np.mean([r['chamfer'] for r in runs]):.2%} | "
+                         f"{hulls['viou']:.3f} / {hulls['chamfer']:.2%} |")
+    if out:
+        hull_v = np.mean([coacd[n]["coacd"]["viou"] for n in out])
+        hull_c = np.mean([coacd[n]["coacd"]["chamfer"] for n in out])
+        lines += ["", f"Means over the {len(out)} meshes of each mesh's mean over the keys "
+                  f"(CoACD's hulls: vIoU {hull_v:.3f}, Chamfer {hull_c:.2%}):", ""]
+        for method in ("thesis", "measured"):
+            v = np.mean([np.mean([r["viou"] for r in out[n][method]]) for n in out])
+            c = np.mean([np.mean([r["chamfer"] for r in out[n][method]]) for n in out])
+            worst = np.mean([min(r["viou"] for r in out[n][method]) for n in out])
+            lines.append(f"- {method}: mean vIoU {v:.3f} ({hull_v - v:.3f} below the hulls'; "
+                         f"the mean of each mesh's worst key {worst:.3f}), Chamfer {c:.2%} "
+                         f"({c / hull_c:.2f}x the hulls').")
+    if skipped:
+        lines += ["", "Left out: " + "; ".join(skipped) + "."]
+    (RESULTS / "keys.md").write_text("\n".join(lines) + "\n")
 
 
 # ----- the comparison with CoACD --------------------------------------------------------
