@@ -105,6 +105,20 @@ def main():
 
 
 # ----- the PSDA outputs (as before) -----------------------------------------------------
+def run_method(points, method: str, parts: int | None, key: int):
+    """``decompose`` as every table here runs it: the thesis's PSDA at gain 0.96, or
+    ``method="measured"`` with ``max_parts`` ``parts`` (the PSDA's part count)."""
+    if method == "thesis":
+        return decompose(points, gain=0.96, key=key)
+    return decompose(points, method="measured", max_parts=parts, key=key)
+
+
+def well_defined(row: dict) -> bool:
+    """Whether a vs_coacd.json row's mesh has a well-defined solid (CoACD's hulls reach
+    vIoU ``WELL_DEFINED``): only those are averaged."""
+    return row["coacd"]["viou"] >= WELL_DEFINED
+
+
 def decompose_model(name: str):
     """Decompose ``name`` twice (the second run warm), write parts.json, preview.png and
     the row of summary.md (summary.json). Returns (the warm Decomposition, first s)."""
@@ -112,10 +126,10 @@ def decompose_model(name: str):
 
     points = load_source(DATA / MODELS[name], num_points=NUM_POINTS, seed=0)
     start = time.perf_counter()
-    decompose(points, gain=0.96, key=0)
+    run_method(points, "thesis", None, 0)
     first = time.perf_counter() - start
     cpu = time.process_time()
-    result = decompose(points, gain=0.96, key=0)
+    result = run_method(points, "thesis", None, 0)
     cpu = time.process_time() - cpu
     out = RESULTS / name
     out.mkdir(exist_ok=True)
@@ -135,9 +149,9 @@ def decompose_measured(name: str, parts: int):
     (so CoACD's pieces at that count stand against both), twice (the second run warm).
     Returns (the warm Decomposition, its process CPU seconds)."""
     points = load_source(DATA / MODELS[name], num_points=NUM_POINTS, seed=0)
-    decompose(points, method="measured", max_parts=parts, key=0)
+    run_method(points, "measured", parts, 0)
     cpu = time.process_time()
-    result = decompose(points, method="measured", max_parts=parts, key=0)
+    result = run_method(points, "measured", parts, 0)
     return result, time.process_time() - cpu
 
 
@@ -193,7 +207,7 @@ def key_spread(names, count: int) -> None:
         row = json.loads(path.read_text()) if path.exists() else None
         if row is None:
             skipped.append(f"{name} (no vs_coacd.json: run the comparison first)")
-        elif row["coacd"]["viou"] < WELL_DEFINED:
+        elif not well_defined(row):
             skipped.append(f"{name} (hulls' vIoU {row['coacd']['viou']:.3f}: not well defined)")
         else:
             coacd[name] = row
@@ -201,13 +215,12 @@ def key_spread(names, count: int) -> None:
     for name, row in coacd.items():
         mesh = load_mesh(DATA / MODELS[name])
         points = load_source(DATA / MODELS[name], num_points=NUM_POINTS, seed=0)
+        parts = row["jaxfit"]["parts"]  # (main's max_parts: the PSDA's key-0 count)
         out[name] = {}
         for method in ("thesis", "measured"):
             runs = []
             for key in range(count):
-                parts = row["jaxfit"]["parts"]  # (main's max_parts: the PSDA's key-0 count)
-                result = (decompose(points, gain=0.96, key=key) if method == "thesis" else
-                          decompose(points, method="measured", max_parts=parts, key=key))
+                result = run_method(points, method, parts, key)
                 scored = twosided.compare(mesh, [p.model for p in result.parts], seed=0)
                 runs.append({"key": key, "parts": len(result.parts),
                              "viou": float(scored["viou"]),
@@ -392,7 +405,7 @@ def write_comparison():
             "| OBB parts | CoACD+OBB vIoU | OBB Chamfer | OBB Hausdorff "
             "| PSDA s (warm) | measured s (warm) | CoACD s | PSDA CPU s | measured CPU s "
             "| CoACD CPU s |", "|" + "---|" * 23]
-    averaged = [r for r in rows if r["coacd"]["viou"] >= WELL_DEFINED]
+    averaged = [r for r in rows if well_defined(r)]
     lines = ["# jaxfit (the thesis's PSDA and method=\"measured\") against CoACD at the "
              "same part count", "",
              "Written by `python -m benchmarks.decomposition` (measures: "
@@ -439,7 +452,7 @@ def write_comparison():
                   f"≤ 0.2): median {ratios[len(ratios) // 2][0]:.3f}; at most 0.2 on {fast} "
                   f"of {len(ratios)} meshes; "
                   + ", ".join(f"{m} {t:.3f}" for t, m in ratios) + "."]
-    left = [r for r in rows if r["coacd"]["viou"] < WELL_DEFINED]
+    left = [r for r in rows if not well_defined(r)]
     if left:
         lines += ["", "Not averaged (CoACD's own hulls reach vIoU < "
                   f"{WELL_DEFINED}: the mesh is hollow or open, so its solid, the "
