@@ -94,11 +94,19 @@ def test_grouped_clouds_get_their_results_of_separate_calls(monkeypatch, key):
         assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
 
 
+def _flat(model) -> np.ndarray:
+    """A model's parameters (``to_dict``'s numbers) as one float vector."""
+    return np.concatenate([np.ravel(v) for k, v in model.to_dict().items() if k != "type"])
+
+
 @pytest.mark.parametrize("shape", ["sphere", "plane"])
 def test_regrouping_the_refinement_between_rounds_changes_no_result(shape):
     """``refine.compacted`` (the default refiner's batched path once a call has several
-    groups of clouds) against the plain map over groups: bit for bit the same fits, on 32
-    clouds (two groups of 16) of which some need more LO rounds than others."""
+    groups of clouds) against the plain map over groups: the same fits, on 32 clouds (two
+    groups of 16) of which some need more LO rounds than others. The same inliers and
+    hypotheses; parameters and costs equal to float32 rounding, not bit for bit: XLA
+    vectorises the two programs' LM steps differently on some CPUs (an AVX2 machine gave
+    19 of the 32 spheres centres 1 ulp apart; AVX-512 ones had matched bit for bit)."""
     import dataclasses
 
     from jaxfit.engine.refine import LevenbergMarquardt, LocalOptimizer
@@ -112,6 +120,7 @@ def test_regrouping_the_refinement_between_rounds_changes_no_result(shape):
     regrouped = jaxfit.fit_batch(clouds, shape, key=5)
     plain = jaxfit.fit_batch(clouds, shape, key=5, refiner=Plain())
     for a, b in zip(regrouped, plain, strict=True):
-        assert a.model.to_dict() == b.model.to_dict()
-        assert (a.cost, a.num_inliers, a.num_hypotheses) == (b.cost, b.num_inliers,
-                                                             b.num_hypotheses)
+        np.testing.assert_allclose(_flat(a.model), _flat(b.model), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(a.cost, b.cost, rtol=1e-5)
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+        assert (a.num_inliers, a.num_hypotheses) == (b.num_inliers, b.num_hypotheses)
