@@ -8,13 +8,12 @@ import dataclasses
 import functools
 import math
 
-import jax
 import numpy as np
 
 from .. import _checks
 from ..shapes import Model
 from ..shapes._geometry import column_bounds, row_norms
-from .keys import normals_key
+from .keys import normals_key_data
 from .options import Bounds
 
 #: Smallest point-count bucket; larger clouds pad to the next power of two.
@@ -123,10 +122,8 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
         wanted = np.arange(len(cloud))
     elif normals is None:
         if len(cloud) > NORMAL_POOL:
-            # (derived here only: two fold_ins per cloud cost more than a small cloud's
-            # whole kernel call)
-            pool_key = jax.random.key_data(normals_key(_checks.prng_key(key), index))
-            rng = np.random.default_rng(np.asarray(pool_key))
+            # (derived here only: its key costs a dispatch)
+            rng = np.random.default_rng(normals_key_data(_checks.prng_key(key), index))
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
             if len(cloud) > NORMAL_SUPPORT:  # (the pool and NORMAL_SUPPORT draws, distinct)
                 taken = np.zeros(len(cloud), bool)

@@ -50,3 +50,17 @@ def seed_cloud_keys(seed: int, impl: str, slots: int):
 def normals_key(key, cloud: int):
     """The key choosing cloud i's normal pool: a stream apart from its batches' keys."""
     return jax.random.fold_in(jax.random.fold_in(key, cloud), NORMALS_STREAM)
+
+
+def _normals_key_data(key, cloud):
+    return jax.random.key_data(normals_key(key, cloud))
+
+
+_normals_data = stored_jit(_normals_key_data)
+
+
+def normals_key_data(key, cloud: int) -> np.ndarray:
+    """``key_data(normals_key(key, cloud))`` as a NumPy array, in one dispatch of a stored
+    program (the two eager fold_ins and key_data cost ~0.3 ms, a tenth of a 1e3-point
+    cylinder fit's host time); the same bits."""
+    return np.asarray(_normals_data(key, np.int32(cloud)))
