@@ -2,8 +2,8 @@
 
 ``estimate_normals(points, k=16)`` gives unit normals (N, 3) of a cloud (N, 3): for each
 point, the eigenvector with the smallest eigenvalue of the 3 x 3 covariance of its k
-nearest neighbours (the point itself included). Neighbours come from scipy's ``cKDTree``
-(a brute-force kNN in JAX is O(N^2)); for few queries in a large cloud, a tree over the
+nearest neighbours (the point itself included). Neighbours come from pykdtree's exact
+KD-tree (``nearest``; a brute-force kNN in JAX is O(N^2)); for few queries in a large cloud, a tree over the
 points near them only (``knn_near``: cubic cells hashed in one pass over the cloud, the
 same neighbours). The covariances are batched in NumPy, and their smallest eigenvectors
 found in closed form (``smallest_eigenvectors``; ``numpy.linalg.eigh`` where that is
@@ -38,17 +38,19 @@ BLOCK = 65536
 _EPS = 1e-9
 
 
-#: Below this many queries a cloud's KD-tree query runs on one thread: scipy's own
-#: threads cost more than they save on small clouds, which are instead queried side by
-#: side, one per core (docs/normals.md).
+#: Points per leaf of ``nearest``'s pykdtree: 16-32 query fastest on 1e3-1e5 points.
+NEAREST_LEAF = 16
+#: Clouds of fewer queries are queried side by side, one per core, when there are
+#: several: their searches are too short for the OpenMP threads of each (docs/normals.md).
 SMALL_QUERY = 4096
 
 
 def kd_tree(points: np.ndarray):
-    """The ``scipy.spatial.cKDTree`` over points (N, 3) that every exact neighbour search
-    of the package queries: sliding-midpoint splits and no node shrinking, the same
-    answers as the default tree (the search is exact) from a tree built in about half
-    the time (over 1e5 points most of 2048 queries' cost; docs/engine.md, "Session 14")."""
+    """The ``scipy.spatial.cKDTree`` over points (N, 3) for the searches pykdtree has no
+    form of (radius pairs, bounded distances, several ranks at once; ``knn``'s k nearest
+    use ``nearest``): sliding-midpoint splits and no node shrinking, the same answers as
+    the default tree (the search is exact) from a tree built in about half the time
+    (docs/engine.md, "Session 14")."""
     from scipy.spatial import cKDTree
 
     return cKDTree(points, balanced_tree=False, compact_nodes=False)
@@ -57,23 +59,38 @@ def kd_tree(points: np.ndarray):
 def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None,
         workers: int = -1, distances: bool = False):
     """Indices (M, k) of the k nearest points of points (N, 3) to each query (M, 3)
-    (default: the points themselves, each first among its own neighbours up to ties),
-    on ``workers`` threads (-1: all cores); with ``distances``, (distances (M, k),
-    indices). Few queries in a large cloud (``few_queries``) are answered from the points
-    near them (``knn_near``), the same neighbours up to ties, without a tree over all."""
+    (default: the points themselves, each first among its own neighbours up to ties);
+    with ``distances``, (distances (M, k), indices). Few queries in a large cloud
+    (``few_queries``) are answered from the points near them (``knn_near``, its scipy
+    queries on ``workers`` threads, -1: all cores), the same neighbours up to ties,
+    without a tree over all; the others by ``nearest``."""
     if queries is not None and few_queries(len(queries), len(points)):
         found = knn_near(points, k, queries, workers)
         if found is not None:
             return found if distances else found[1]
     queries = points if queries is None else queries
-    found = kd_tree(points).query(queries, k=k, workers=workers)
+    found = nearest(points, queries, k)
     return found if distances else found[1]
+
+
+def nearest(points: np.ndarray, queries: np.ndarray, k: int):
+    """(distances (M, k) float64, indices (M, k) intp) of the k nearest of points (N, 3),
+    k <= N, to each query (M, 3), nearest first: pykdtree's exact search, on its OpenMP
+    threads (``OMP_NUM_THREADS``). The same neighbours and distances as scipy's
+    ``cKDTree`` up to ties, in 1/3 of its time at k = 16 on 1e3 points and 2/3 on 1e4-1e5
+    (its heap of k is cheaper; docs/normals.md, "pykdtree")."""
+    from pykdtree.kdtree import KDTree
+
+    points = np.ascontiguousarray(points, np.float64)
+    queries = np.ascontiguousarray(queries, np.float64)
+    dist, hood = KDTree(points, leafsize=NEAREST_LEAF).query(queries, k=k)
+    return dist, hood.astype(np.intp)
 
 
 def knn_many(clouds, queries, ks, distances: bool = False) -> list:
     """``knn(clouds[i], ks[i], queries[i], distances=distances)`` for every cloud: large
-    ones one after the other on all cores; small ones (< SMALL_QUERY queries), if there
-    are several, one per core at a time (cKDTree releases the GIL while it queries)."""
+    ones one after the other; small ones (< SMALL_QUERY queries), if there are several,
+    one per core at a time (pykdtree releases the GIL while it queries)."""
     out = [None] * len(clouds)
     small = [i for i, q in enumerate(queries) if len(q) < SMALL_QUERY]
     if len(small) < 2:  # nothing to run side by side
