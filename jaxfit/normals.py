@@ -3,11 +3,11 @@
 ``estimate_normals(points, k=16)`` gives unit normals (N, 3) of a cloud (N, 3): for each
 point, the eigenvector with the smallest eigenvalue of the 3 x 3 covariance of its k
 nearest neighbours (the point itself included). Neighbours come from pykdtree's exact
-KD-tree (``nearest``; a brute-force kNN in JAX is O(N^2)); for few queries in a large cloud, a tree over the
-points near them only (``knn_near``: cubic cells hashed in one pass over the cloud, the
-same neighbours). The covariances are batched in NumPy, and their smallest eigenvectors
-found in closed form (``smallest_eigenvectors``; ``numpy.linalg.eigh`` where that is
-ill-conditioned).
+KD-tree (``nearest``; a brute-force kNN in JAX is O(N^2)); for few queries in a large
+cloud, a tree over the points near them only (``knn_near``: cubic cells hashed in one
+pass over the cloud, the same neighbours). The covariances are batched in NumPy, and
+their smallest eigenvectors found in closed form (``smallest_eigenvectors``;
+``numpy.linalg.eigh`` where that is ill-conditioned).
 
 Orientation (the sign of each normal) follows Hoppe et al. 1992, "Surface reconstruction
 from unorganized points": a minimum spanning tree over the (undirected) k-NN graph with edge
