@@ -78,9 +78,12 @@ def nearest(points: np.ndarray, queries: np.ndarray, k: int):
     k <= N, to each query (M, 3), nearest first: pykdtree's exact search, on its OpenMP
     threads (``OMP_NUM_THREADS``). The same neighbours and distances as scipy's
     ``cKDTree`` up to ties, in 1/3 of its time at k = 16 on 1e3 points and 2/3 on 1e4-1e5
-    (its heap of k is cheaper; docs/normals.md, "pykdtree")."""
+    (its heap of k is cheaper; docs/normals.md, "pykdtree for the k nearest"). Raises
+    ValueError for k > N, where pykdtree would pad with out-of-range indices."""
     from pykdtree.kdtree import KDTree
 
+    if k > len(points):
+        raise ValueError(f"k = {k} nearest asked of {len(points)} points")
     points = np.ascontiguousarray(points, np.float64)
     queries = np.ascontiguousarray(queries, np.float64)
     dist, hood = KDTree(points, leafsize=NEAREST_LEAF).query(queries, k=k)

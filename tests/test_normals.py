@@ -313,3 +313,14 @@ def test_normals_of_few_points_skip_the_tree_over_all(monkeypatch, name):
     near = nm.normals_at(points, indices)
     assert sizes and max(sizes) < len(points) // 4
     np.testing.assert_array_equal(near, full)
+
+
+def test_nearest_refuses_more_neighbours_than_points():
+    # pykdtree pads such a query with indices past the cloud; nearest must not hand them on.
+    from jaxfit.normals import nearest
+
+    points = np.random.default_rng(0).normal(size=(3, 3))
+    with pytest.raises(ValueError, match="k = 5 nearest asked of 3 points"):
+        nearest(points, points, 5)
+    dist, hood = nearest(points, points, 3)
+    assert hood.dtype == np.intp and hood.max() < 3 and (hood[:, 0] == np.arange(3)).all()
