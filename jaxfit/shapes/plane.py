@@ -67,9 +67,8 @@ class Plane(Model):
     def least_squares(points, weights):
         # Through the weighted centroid, normal along the scatter's least direction: the
         # least-squares plane in one step, where Levenberg-Marquardt takes several.
-        centroid = weights @ points / jnp.sum(weights)
-        spread = (points - centroid) * jnp.sqrt(weights)[:, None]
-        normal = g.smallest_eigenvector(spread.T @ spread)  # (no LAPACK call)
+        centroid, scatter = g.weighted_scatter(points, weights)
+        normal = g.smallest_eigenvector(scatter)  # (no LAPACK call)
         return jnp.concatenate([normal, -(normal @ centroid)[None]])
 
     @classmethod
