@@ -4,7 +4,7 @@ degenerate clouds give a clear error or a finite model, never a crash or NaN."""
 import jax
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -106,6 +106,8 @@ def _clouds():
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(cloud=_clouds(), shape=st.sampled_from(["plane", "sphere", "cylinder", "cone", "box"]))
+# (found by this test: every box inlier on one face left no others to bound that axis)
+@example(cloud=np.r_[[[0.0, 1.0, 1.0]], np.ones((123, 3))], shape="box")
 def test_random_and_degenerate_clouds_give_a_model_or_a_clear_error(cloud, shape):
     try:
         result = jaxfit.fit(cloud, shape, max_hypotheses=1024, key=1)

@@ -146,7 +146,11 @@ class Box(Model):
             if np.isnan(far[i]):
                 # No clear peak (the far face is hidden or too noisy): the other faces'
                 # inliers still show how far the box reaches along n_i.
+                # No such inliers (all on face i): nothing reaches past it, a flat box.
                 others = proj[inliers & (face != i), i]
+                if len(others) == 0:
+                    far[i] = near[i]
+                    continue
                 lo, hi = g.main_interval(others, g.GAP_THRESHOLDS * threshold)
                 far[i] = hi if hi - near[i] > near[i] - lo else lo
         near, far = _polish_faces(proj, near, far, threshold)
