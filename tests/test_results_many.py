@@ -98,6 +98,20 @@ def test_plane_from_theta_many_is_from_theta(rng):
                                  thresholds)
     for t, c, m, u, model in zip(thetas, clouds, masks, thresholds, many, strict=True):
         assert model == Plane.from_theta(t, c.unit, m, float(u))
+    # With the clouds' frames: each model rescaled into its cloud's coordinates.
+    scales, shifts = rng.uniform(0.1, 10, 12), rng.normal(size=(12, 3)) * 5
+    moved = Plane.from_theta_many(thetas, [c.unit for c in clouds], np.concatenate(masks),
+                                  thresholds, scales, shifts)
+    for model, back, s, c in zip(many, moved, scales, shifts, strict=True):
+        assert back == model.rescaled(s, c)
+
+
+def test_sphere_from_theta_many_is_from_theta_rescaled(rng):
+    thetas = rng.normal(size=(9, 4))
+    scales, shifts = rng.uniform(0.1, 10, 9), rng.normal(size=(9, 3)) * 5
+    many = Sphere.from_theta_many(thetas, [None] * 9, None, None, scales, shifts)
+    for t, s, c, model in zip(thetas, scales, shifts, many, strict=True):
+        assert model == Sphere.from_theta(t, None, None, None).rescaled(s, c)
 
 
 def test_results_many_leaves_other_shapes_and_gated_clouds_to_result():
@@ -125,7 +139,8 @@ def test_plane_rescaled_is_the_field_rule_bit_for_bit(rng):
                       np.float64(rng.uniform(0.1, 3)))
         scale, shift = float(rng.uniform(0.01, 100)), rng.normal(size=3) * 50
         generic = Model.rescaled(plane, scale, shift)
-        offset = np.float64(plane.offset) * scale - normal @ shift
+        offset = np.float64(plane.offset) * scale - (normal[0] * shift[0] + normal[1] * shift[1]
+                                                     + normal[2] * shift[2])
         assert plane.rescaled(scale, shift) == Plane(normal, offset, generic.center,
                                                      generic.radius)
     bare = Plane(normal, np.float64(0.5))

@@ -216,8 +216,8 @@ def _results_block(cls: type[Model], clouds: list[Cloud], thetas, drawn, status)
     if not chosen:
         return out
     models = cls.from_theta_many(thetas[ok], [c.unit for c in chosen], near,
-                                 unit_thresholds[ok])
-    models = [m.rescaled(c.scale, c.center) for m, c in zip(models, chosen, strict=True)]
+                                 unit_thresholds[ok], [c.scale for c in chosen],
+                                 np.stack([c.center for c in chosen]))
     # Judged against the bounded models, in the input's coordinates (as ``result``).
     points = np.concatenate([c.points for c in chosen])
     per_point = np.repeat(np.stack([m.theta() for m in models], axis=1), sizes, axis=1)

@@ -31,9 +31,10 @@ needs as class-level functions:
   uses it instead of Levenberg-Marquardt steps.
 - ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
   height / extents / faces fixed from the inliers after the loop (NumPy, float64).
-- ``from_theta_many(thetas, points, inliers, thresholds)`` (optional: the default calls
-  ``from_theta`` per cloud) and ``pointwise_theta`` (default False): ``fit_batch``'s
-  results for many clouds in array code (``engine.fit.results_many``).
+- ``from_theta_many(thetas, points, inliers, thresholds[, scales, shifts])`` (optional:
+  the default calls ``from_theta`` and ``rescaled`` per cloud) and ``pointwise_theta``
+  (default False): ``fit_batch``'s results for many clouds in array code
+  (``engine.fit.results_many``).
 
 ``theta`` is the flat hypothesis vector of length ``num_params``; it is an engine detail,
 documented per primitive, while the dataclass fields are the public parameters.
@@ -236,14 +237,20 @@ class Model:
     pointwise_theta: ClassVar[bool] = False
 
     @classmethod
-    def from_theta_many(cls, thetas, points, inliers, thresholds) -> list:
+    def from_theta_many(cls, thetas, points, inliers, thresholds, scales=None,
+                        shifts=None) -> list:
         """``from_theta`` of C clouds at once: thetas (C, P), points a list of C (N_i, 3)
-        arrays, inliers (sum N_i,) bool, the clouds' masks concatenated, thresholds (C,).
-        A list of C models, each equal to ``from_theta``'s. This default calls it cloud by
-        cloud; a shape overrides it where array code over all clouds is faster."""
+        arrays, inliers (sum N_i,) bool, the clouds' masks concatenated, thresholds (C,);
+        with scales (C,) and shifts (C, 3), each model ``rescaled(scale, shift)``. A list
+        of C models, each equal to ``from_theta``'s (and ``rescaled``'s). This default
+        calls them cloud by cloud; a shape overrides it where array code over all clouds
+        is faster."""
         ends = np.cumsum([len(p) for p in points])
-        return [cls.from_theta(theta, p, inliers[end - len(p):end], float(t))
-                for theta, p, end, t in zip(thetas, points, ends, thresholds, strict=True)]
+        models = [cls.from_theta(theta, p, inliers[end - len(p):end], float(t))
+                  for theta, p, end, t in zip(thetas, points, ends, thresholds, strict=True)]
+        if scales is None:
+            return models
+        return [m.rescaled(s, c) for m, s, c in zip(models, scales, shifts, strict=True)]
 
     # ----- public model API --------------------------------------------------------------
     def residual(self, points):

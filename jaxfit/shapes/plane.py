@@ -84,54 +84,63 @@ class Plane(Model):
         # plane's own 2-D coordinates: two 1-D medians, not a gather of (M, 3) rows and
         # three (docs/shapes.md).
         in_plane = g.frame(normal)[:, :2]  # (3, 2)
-        u, v = (points @ in_plane[:, i] for i in range(2))
-        u, v = u[inliers], v[inliers]
+        inside = points[inliers]
+        u, v = (_project(inside, in_plane[:, i]) for i in range(2))
         mu, mv = g.median(u), g.median(v)
-        spread = np.hypot(u - mu, v - mv)
+        spread = _length_2d(u - mu, v - mv)
         _, radius = g.main_interval(spread, g.GAP_THRESHOLDS * threshold)
         patch = spread <= radius
-        center = in_plane @ np.array([u[patch].mean(), v[patch].mean()]) - offset * normal
+        center = _patch_center(in_plane, u[patch].sum() / np.count_nonzero(patch),
+                               v[patch].sum() / np.count_nonzero(patch), offset, normal)
         return cls(normal, np.float64(offset), center, np.float64(radius))
 
     @classmethod
-    def from_theta_many(cls, thetas, points, inliers, thresholds):
-        # ``from_theta`` of every cloud, bit for bit: the projections and the patch's
-        # centre are the same NumPy products cloud by cloud (BLAS sums them in its own
-        # order, so they are not redone as elementwise sums), the medians and the
-        # patch's radius are segment versions over all clouds (``_geometry``).
+    def from_theta_many(cls, thetas, points, inliers, thresholds, scales=None, shifts=None):
+        # ``from_theta`` (and ``rescaled``) of every cloud, bit for bit: the same
+        # elementwise arithmetic on arrays of all clouds; the medians and the patch's
+        # radius are segment versions over all clouds (``_geometry``).
         thetas = np.asarray(thetas, np.float64)
         # (each squared length by stacked matmul: the same dot product as theta @ theta)
         lengths = np.sqrt(np.matmul(thetas[:, None, :3], thetas[:, :3, None])[:, 0, 0])
         normals = g.sign_canonical(thetas[:, :3] / lengths[:, None])
         flips = np.where((normals * thetas[:, :3]).sum(axis=1) > 0, 1.0, -1.0)  # (signs
         offsets = thetas[:, 3] / lengths * flips  # of +-|n|^2, as exact as normal @ theta[:3]'s)
-        in_plane = list(g.frames(normals)[:, :, :2])  # (3, 2) each
+        in_plane = g.frames(normals)[:, :, :2]  # (C, 3, 2)
         counts = np.add.reduceat(inliers, np.cumsum([0] + [len(p) for p in points[:-1]]),
                                  dtype=np.int64)
-        u, v = (np.concatenate([p @ f[:, i] for p, f in zip(points, in_plane, strict=True)])
-                [inliers] for i in range(2))
+        inside = np.concatenate(points)[inliers]  # (M, 3)
+        u, v = (_project(inside, np.repeat(in_plane[:, :, i], counts, axis=0).T)
+                for i in range(2))
         mu, mv = g.segment_medians(u, counts), g.segment_medians(v, counts)
-        spread = np.hypot(u - np.repeat(mu, counts), v - np.repeat(mv, counts))
+        spread = _length_2d(u - np.repeat(mu, counts), v - np.repeat(mv, counts))
         _, radius = g.main_intervals(spread, counts, g.GAP_THRESHOLDS * np.asarray(thresholds))
         patch = spread <= np.repeat(radius, counts)
         kept = np.add.reduceat(patch, np.cumsum(counts) - counts, dtype=np.int64)
-        ends = np.cumsum(kept).tolist()
+        starts = (np.cumsum(kept) - kept).tolist()
         up, vp = u[patch], v[patch]
-        return [cls(n, np.float64(d), f @ np.array([up[e - k:e].sum() / k,  # (= mean())
-                                                    vp[e - k:e].sum() / k]) - d * n,
-                    np.float64(r))
-                for n, d, f, e, k, r in zip(normals, offsets, in_plane, ends, kept.tolist(),
-                                            radius, strict=True)]
+        # (each patch summed over its own slice: reduceat sums in another order)
+        su = np.array([up[s:s + k].sum() for s, k in zip(starts, kept.tolist(), strict=True)])
+        sv = np.array([vp[s:s + k].sum() for s, k in zip(starts, kept.tolist(), strict=True)])
+        centers = _patch_center(in_plane.transpose(1, 2, 0), su / kept, sv / kept,
+                                offsets, normals.T).T  # (C, 3)
+        if scales is not None:
+            scales, shifts = np.asarray(scales, np.float64), np.asarray(shifts, np.float64)
+            offsets, centers, radius = _rescaled(normals, offsets, centers, radius, scales,
+                                                 shifts)
+        return [cls(n, d, c, r) for n, d, c, r in zip(normals, offsets, centers, radius,
+                                                        strict=True)]
 
     def theta(self):
         return np.concatenate([self._array("normal"), [float(self.offset)]])
 
     def rescaled(self, scale, shift):
-        # ``Model.rescaled``'s arithmetic for the patch, written out: its field loop and
-        # ``dataclasses.replace`` had cost ~12 us of a fit's results (docs/engine.md).
-        offset = self._array("offset") * scale - self._array("normal") @ np.asarray(shift)
-        center = None if self.center is None else self.center * scale + shift
-        radius = None if self.radius is None else self.radius * scale + 0.0
+        # ``Model.rescaled``'s arithmetic for the patch, written out (its field loop and
+        # ``dataclasses.replace`` had cost ~12 us of a fit's results, docs/engine.md),
+        # elementwise as ``from_theta_many``'s.
+        offset, center, radius = _rescaled(
+            self._array("normal"), self._array("offset"), self.center,
+            None if self.radius is None else self._array("radius"), scale,
+            np.asarray(shift, np.float64))
         return type(self)(self.normal, offset, center, radius)
 
     def sample(self, count, rng):
@@ -224,6 +233,35 @@ class Plane(Model):
         t_offset = float(self.offset) / np.linalg.norm(np.asarray(self.normal, float))
         return {"normal_angle_deg": g.axis_angle_deg(t_n, f_n),
                 "offset_error": abs(offset - t_offset)}
+
+
+def _project(points, axis):
+    """Coordinates (M,) of points (M, 3) along axis (3,) or per-point axes (3, M):
+    elementwise, so one cloud and many give the same bits (a BLAS product sums in its
+    own order)."""
+    return points[:, 0] * axis[0] + points[:, 1] * axis[1] + points[:, 2] * axis[2]
+
+
+def _length_2d(du, dv):
+    """sqrt(du^2 + dv^2), elementwise: ``np.hypot`` guards over/underflow that
+    normalised coordinates never meet, at ~5x the time."""
+    return np.sqrt(du * du + dv * dv)
+
+
+def _patch_center(in_plane, mean_u, mean_v, offset, normal):
+    """The patch's centre (3,) on the plane from its mean in-plane coordinates: in_plane
+    (3, 2), scalars and normal (3,) for one plane, or (3, 2, C), (C,) and (3, C) for C."""
+    return in_plane[:, 0] * mean_u + in_plane[:, 1] * mean_v - offset * normal
+
+
+def _rescaled(normal, offset, center, radius, scale, shift):
+    """``Plane.rescaled``'s fields (offset, centre, radius) for points p * scale + shift:
+    normal, centre and shift (..., 3), offset, radius and scale (...) or scalars, so one
+    plane, a batched one and ``from_theta_many``'s C planes share the arithmetic."""
+    moved = offset * scale - (normal[..., 0] * shift[..., 0] + normal[..., 1] * shift[..., 1]
+                              + normal[..., 2] * shift[..., 2])
+    return (moved, None if center is None else center * np.expand_dims(scale, -1) + shift,
+            None if radius is None else radius * scale + 0.0)
 
 
 def _disk(radius, sections, matrix):

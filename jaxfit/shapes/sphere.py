@@ -84,9 +84,16 @@ class Sphere(Model):
         return cls(np.asarray(theta[:3], np.float64), np.float64(abs(theta[3])))
 
     @classmethod
-    def from_theta_many(cls, thetas, points, inliers, thresholds):
-        # (the points are not read: no per-cloud slices of the masks)
-        return [cls.from_theta(theta, None, None, None) for theta in thetas]
+    def from_theta_many(cls, thetas, points, inliers, thresholds, scales=None, shifts=None):
+        # (the points are not read: no per-cloud slices of the masks; ``rescaled``'s
+        # arithmetic on arrays of all clouds)
+        thetas = np.asarray(thetas, np.float64)
+        centers, radii = thetas[:, :3], np.abs(thetas[:, 3])
+        if scales is not None:
+            scales = np.asarray(scales, np.float64)
+            centers = centers * scales[:, None] + np.asarray(shifts, np.float64)
+            radii = radii * scales + 0.0
+        return [cls(c, r) for c, r in zip(centers, radii, strict=True)]
 
     def theta(self):
         return np.concatenate([self._array("center"), [float(self.radius)]])
