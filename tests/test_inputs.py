@@ -104,7 +104,9 @@ def _clouds():
     return st.one_of(random, few_values, flat)
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+# (derandomized: CI runs the same 40 cases; explore with a larger max_examples by hand)
+@settings(max_examples=40, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.too_slow])
 @given(cloud=_clouds(), shape=st.sampled_from(["plane", "sphere", "cylinder", "cone", "box"]))
 # (found by this test: every box inlier on one face left no others to bound that axis)
 @example(cloud=np.r_[[[0.0, 1.0, 1.0]], np.ones((123, 3))], shape="box")
