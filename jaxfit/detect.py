@@ -61,9 +61,10 @@ import numpy as np
 from . import _checks
 from .engine import FitOptions, default_threshold, fit_batch
 from .io.inputs import converted
-from .normals import column_bounds, distinct_inverse, distinct_rows, kd_tree, pair_normals
+from .normals import distinct_inverse, distinct_rows, kd_tree, pair_normals
 from .shapes import Model, trimesh_scene
 from .shapes._base import short
+from .shapes._geometry import column_bounds
 
 #: Candidate shapes, simplest first (the order breaks near-ties in support).
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")

@@ -175,11 +175,12 @@ def transform(rotation, translation):
 
 
 def column_bounds(points):
-    """(lo (3,), hi (3,)) of points (N, 3), one column at a time: NumPy's axis-0
-    reductions over (N, 3) run an inner loop of length 3 and are several times slower
-    (docs/shapes.md)."""
-    lo = np.array([points[:, i].min() for i in range(3)])
-    return lo, np.array([points[:, i].max() for i in range(3)])
+    """(lowest (D,), highest (D,)) of each column of points (N, D), N >= 1, reduced over
+    contiguous columns: NumPy's axis-0 reductions of an (N, 3) array stride through it
+    with an inner loop of length 3 (0.65 ms a bound on 23k points, against ~0.03 ms for
+    the copy and both bounds; docs/shapes.md)."""
+    columns = np.ascontiguousarray(points.T)
+    return columns.min(axis=1), columns.max(axis=1)
 
 
 def median(values):
