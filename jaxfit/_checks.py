@@ -146,7 +146,13 @@ def probability(value, name: str) -> float:
 @functools.lru_cache(maxsize=256)
 def _seed_key(seed: int, impl: str):
     """jax.random.key(seed), kept: making one is a JAX dispatch of ~0.3 ms, a twentieth of
-    a small fit. Keys are immutable; ``impl`` keys the cache on JAX's PRNG setting."""
+    a small fit (and ~0.1 s of compiling in a fresh process: a threefry key is wrapped
+    from its data instead). Keys are immutable; ``impl`` keys the cache on JAX's PRNG
+    setting."""
+    from .engine.keys import THREEFRY, seed_data
+
+    if impl == THREEFRY:
+        return jax.random.wrap_key_data(seed_data(seed), impl=THREEFRY)
     return jax.random.key(seed)
 
 

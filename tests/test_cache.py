@@ -77,7 +77,7 @@ def test_second_process_hits_the_cache(tmp_path):
     assert first["misses"] > 0 and first["hits"] == 0
     assert len(written) == first["misses"]  # every compiled executable was stored
     programs = exported(folder)
-    assert first["exports"] == len(programs) == 2  # the kernel and the cloud keys
+    assert first["exports"] == len(programs) == 1  # the kernel (the cloud keys: NumPy)
     second, _ = run({_cache.ENV_DIR: str(folder)})
     assert second["hits"] == first["misses"] and second["misses"] == 0
     assert entries(folder) == written  # nothing rewritten or added
@@ -291,7 +291,8 @@ def test_no_home_folder_leaves_jaxfit_importable(tmp_path):
 
 # --- Trust (issue 14, Security): signed programs, JAX's entries, shared folders ---------
 
-# A tiny whole-process fit (~1 s with warm caches); prints its results.
+# A tiny whole-process fit (~1 s with warm caches); prints its results. Two batch sizes:
+# two stored programs (two kernels), so that one can be copied over the other.
 FIT = r"""
 import json, warnings
 warnings.simplefilter("always")
@@ -299,8 +300,10 @@ import jax, numpy as np
 import jaxfit
 from jaxfit.evaluation.synthetic import demo_cloud
 points, _, _ = demo_cloud("sphere", count=200, outlier_ratio=0.2, seed=0)
+small = jaxfit.fit(points, "sphere", batch_size=32, max_hypotheses=32, refine=False, key=0)
 result = jaxfit.fit(points, "sphere", batch_size=64, max_hypotheses=64, refine=False, key=0)
 print(json.dumps({"dir": jaxfit.compilation_cache_dir(), "cost": float(result.cost),
+                  "small_cost": float(small.cost),
                   "inliers": np.flatnonzero(result.inliers).tolist(),
                   "model": [np.asarray(leaf).tolist() for leaf in jax.tree.leaves(result.model)]}))
 """

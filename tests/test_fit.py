@@ -103,6 +103,32 @@ def test_same_key_same_result_and_keys_matter():
         assert np.array_equal(jax.random.key_data(fused), jax.random.key_data(made))
 
 
+def test_keys_made_in_numpy_are_jax_fold_ins():
+    # Threefry keys outside the kernels are derived in NumPy (no program to compile):
+    # the same bits as jax.random.fold_in, for any seed and index; another PRNG (rbg)
+    # takes the jitted path and gives its own fold_ins.
+    from jaxfit import _checks
+    from jaxfit.engine import keys
+
+    rng = np.random.default_rng(3)
+    indices = np.r_[0, 1, 2**31 - 1, keys.NORMALS_STREAM, rng.integers(0, 2**31, 12)]
+    for seed in [0, 1, 2**32 - 1, *rng.integers(0, 2**32, 6).tolist()]:
+        key = jax.random.key(seed)
+        made = np.stack([jax.random.key_data(jax.random.fold_in(key, int(i)))
+                         for i in indices])
+        assert np.array_equal(keys.fold_in_data(keys.seed_data(seed), indices), made)
+        assert np.array_equal(jax.random.key_data(_checks._seed_key(seed, keys.THREEFRY)),
+                              jax.random.key_data(key))
+        assert np.array_equal(jax.random.key_data(keys.keys_at(key, indices)), made)
+        assert np.array_equal(keys.normals_key_data(key, 5),
+                              jax.random.key_data(keys.normals_key(key, 5)))
+    other = jax.random.key(3, impl="rbg")
+    made = np.stack([jax.random.key_data(jax.random.fold_in(other, i)) for i in (0, 4)])
+    assert np.array_equal(jax.random.key_data(keys.keys_at(other, [0, 4])), made)
+    assert np.array_equal(keys.normals_key_data(other, 2),
+                          jax.random.key_data(keys.normals_key(other, 2)))
+
+
 def test_stopping_rule_values():
     # T = log(1 - p) / log(1 - w^k), rounded up.
     assert required_hypotheses(0.5, 3, 0.99) == 35

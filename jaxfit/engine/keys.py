@@ -1,6 +1,11 @@
 """Where every random choice of a fit comes from: one key per call, cloud i's key
 ``fold_in(key, i)``, its batch b ``fold_in(fold_in(key, i), b)``, and its normal pool a
-stream apart (``normals_key``). Results do not depend on call order or on the cache."""
+stream apart (``normals_key``). Results do not depend on call order or on the cache.
+
+With JAX's default PRNG (threefry2x32) the keys made outside the kernels are computed in
+NumPy (``fold_in_data``: the same bits as ``jax.random.fold_in``), since each small
+program that made them compiled for ~0.1 s in a fresh process; other PRNGs take the
+jitted path."""
 
 from __future__ import annotations
 
@@ -14,6 +19,52 @@ from .._cache import stored_jit
 
 #: The fold_in tag of a cloud's normal-pool stream.
 NORMALS_STREAM = 0x6E6F726D
+#: The PRNG whose keys are derived in NumPy (``fold_in_data``).
+THREEFRY = "threefry2x32"
+_ROTATIONS = ((13, 15, 26, 6), (17, 29, 16, 24))
+
+
+def _threefry2x32(key, x1, x2):
+    """Threefry-2x32 of the counts (x1 (S,), x2 (S,)) under key (2,), all uint32 (20
+    rounds, the key injected every 4): JAX's ``threefry2x32_p``, bit for bit."""
+    k1, k2 = np.uint32(key[0]), np.uint32(key[1])
+    ks = (k1, k2, k1 ^ k2 ^ np.uint32(0x1BD11BDA))
+    x1, x2 = x1 + ks[0], x2 + ks[1]
+    for i in range(5):
+        for r in _ROTATIONS[i % 2]:
+            x1 = x1 + x2
+            x2 = x1 ^ ((x2 << np.uint32(r)) | (x2 >> np.uint32(32 - r)))
+        x1 = x1 + ks[(i + 1) % 3]
+        x2 = x2 + ks[(i + 2) % 3] + np.uint32(i + 1)
+    return x1, x2
+
+
+def fold_in_data(data, indices) -> np.ndarray:
+    """(S, 2) uint32: ``key_data(fold_in(k, i))`` for each i of indices (S,), where k is
+    the threefry key with data (2,) (fold_in hashes the count (0, i))."""
+    indices = np.asarray(indices, np.uint32).reshape(-1)
+    return np.stack(_threefry2x32(np.asarray(data, np.uint32), np.zeros_like(indices),
+                                  indices), axis=1)
+
+
+def seed_data(seed: int) -> np.ndarray:
+    """(2,) uint32: ``key_data(jax.random.key(seed))`` of a threefry key, for a seed in
+    [0, 2**32) (the high word is 0)."""
+    return np.array([0, seed], np.uint32)
+
+
+def _wrapped(data):
+    """Threefry keys (S,) from their data (S, 2), committed to the default device as the
+    jitted path's outputs were (``loop.refine_ahead`` compiles for the kernel's outputs,
+    which are committed exactly when its keys are)."""
+    return jax.device_put(jax.random.wrap_key_data(data, impl=THREEFRY), jax.local_devices()[0])
+
+
+def _threefry_data(key):
+    """The data (2,) of a single threefry key, as NumPy, or None for another PRNG."""
+    if jax.random.key_impl(key) != THREEFRY:
+        return None
+    return np.asarray(jax.random.key_data(key))
 
 
 def _fold_in_each(key, indices):
@@ -37,14 +88,19 @@ def cloud_keys(key, slots: int):
 
 def keys_at(key, indices):
     """(S,) keys fold_in(key, i) for the cloud indices i of ``indices`` (S,)."""
-    return _keys_of_key(key, np.asarray(indices, np.int32))
+    data = _threefry_data(key)
+    if data is None:
+        return _keys_of_key(key, np.asarray(indices, np.int32))
+    return _wrapped(fold_in_data(data, indices))
 
 
 @functools.lru_cache(maxsize=256)
 def seed_cloud_keys(seed: int, impl: str, slots: int):
-    """``cloud_keys`` of ``jax.random.key(seed)`` in one dispatch, kept per seed (keys
-    are immutable; ``impl`` keys the cache on JAX's PRNG setting)."""
-    return _keys_of_seed(np.uint32(seed), slots)
+    """``cloud_keys`` of ``jax.random.key(seed)``, kept per seed (keys are immutable;
+    ``impl`` keys the cache on JAX's PRNG setting)."""
+    if impl != THREEFRY:
+        return _keys_of_seed(np.uint32(seed), slots)
+    return _wrapped(fold_in_data(seed_data(seed), np.arange(slots)))
 
 
 def normals_key(key, cloud: int):
@@ -60,7 +116,10 @@ _normals_data = stored_jit(_normals_key_data)
 
 
 def normals_key_data(key, cloud: int) -> np.ndarray:
-    """``key_data(normals_key(key, cloud))`` as a NumPy array, in one dispatch of a stored
-    program (the two eager fold_ins and key_data cost ~0.3 ms, a tenth of a 1e3-point
-    cylinder fit's host time); the same bits."""
-    return np.asarray(_normals_data(key, np.int32(cloud)))
+    """``key_data(normals_key(key, cloud))`` as a NumPy array: in NumPy for a threefry
+    key, else in one dispatch of a stored program (the two eager fold_ins and key_data
+    cost ~0.3 ms, a tenth of a 1e3-point cylinder fit's host time); the same bits."""
+    data = _threefry_data(key)
+    if data is None:
+        return np.asarray(_normals_data(key, np.int32(cloud)))
+    return fold_in_data(fold_in_data(data, [cloud])[0], [NORMALS_STREAM])[0]
