@@ -328,18 +328,21 @@ class Stored:
 
     def __call__(self, *args, **kwargs):
         if _enabled_dir is None:
+            _run_after_export()
             return self.jitted(*args, **kwargs)
         dyn_args = tuple(a for i, a in enumerate(args) if i not in self.static_positions)
         dyn_kwargs = {k: v for k, v in kwargs.items() if k not in self.static_names}
         leaves, tree = jax.tree_util.tree_flatten((dyn_args, dyn_kwargs))
         signature = self._signature(args, kwargs, leaves, tree)
         if signature in self.ready:  # (compiled by its first call)
+            _run_after_export()
             kernel = self.kernels[signature]
             if kernel is self.jitted:
                 return self.jitted(*args, **kwargs)
             return kernel(*dyn_args, **dyn_kwargs)
         with scope():  # a call that may trace or compile: in jaxfit's cache folder
             if signature is None:
+                _run_after_export()
                 return self.jitted(*args, **kwargs)
             with self.first_calls.setdefault(signature, threading.Lock()):
                 if signature in self.ready:  # another thread's first call came first
@@ -366,6 +369,7 @@ class Stored:
         if kernel is None:
             kernel = self.kernels[signature] = self._kernel(signature, args, kwargs, leaves,
                                                             tree)
+        _run_after_export()  # (traced and lowered, or read: compiling comes next)
         if kernel is self.jitted:
             return self.jitted(*args, **kwargs)
         lapack = contextlib.nullcontext() if signature not in self.lapack_free else \
@@ -432,6 +436,30 @@ def calls_lapack(exported) -> bool:
         return b"lapack" in exported.mlir_module_serialized
     except Exception:
         return True
+
+
+_exported = threading.local()  # .callback: ``after_export``'s, until it has run
+
+
+@contextlib.contextmanager
+def after_export(callback):
+    """Run ``callback()`` (if not None) once in this thread: as soon as the block's first
+    ``Stored`` call has its program (traced and lowered, or read), before compiling or
+    running it; at the block's end at the latest. Why: work it starts in a thread (the
+    refinement's tracing, ``engine.loop``) then does not take the GIL from this
+    program's tracing and lowering, which a cold first fit waits on."""
+    _exported.callback = callback
+    try:
+        yield
+    finally:
+        _run_after_export()
+
+
+def _run_after_export():
+    callback = getattr(_exported, "callback", None)
+    if callback is not None:
+        _exported.callback = None
+        callback()
 
 
 _lapack_skip = threading.local()  # .depth: how many ``without_lapack`` blocks this thread is in

@@ -176,6 +176,27 @@ def _stored_square(tmp_path, monkeypatch, traced):
                          ("factor",))
 
 
+def test_after_export_runs_once_between_tracing_and_running(tmp_path, monkeypatch):
+    """``after_export``'s callback runs once: after the block's first Stored call is
+    traced (before it runs), before a compiled one runs, or at the block's end."""
+    import numpy as np
+
+    events = []
+    x = np.arange(4, dtype=np.float32)
+    square = _stored_square(tmp_path, monkeypatch, events)
+    with _cache.after_export(lambda: events.append("callback")):
+        square(x, factor=3)
+        square(x, factor=3)
+    assert events == [x.shape, "callback"]  # traced, then the callback, once
+    with _cache.after_export(lambda: events.append("ready")):
+        square(x, factor=3)  # (compiled: the callback before it runs)
+    with _cache.after_export(lambda: events.append("no call")):
+        pass
+    with _cache.after_export(None):
+        square(x, factor=3)
+    assert events == [x.shape, "callback", "ready", "no call"]
+
+
 def test_a_stored_kernel_is_read_back_without_tracing(tmp_path, monkeypatch):
     import numpy as np
 

@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 from .. import _checks
+from .._cache import after_export
 from ..shapes import Model
 from .backend import placer, slots
 from .cloud import Cloud, bucket_size
@@ -35,12 +36,14 @@ _ahead: set = set()  # the refinement calls compiled ahead in this process
 
 def refine_ahead(cls: type[Model], options: FitOptions, arrays: dict, rows: int, dtype,
                  gated: bool, put=lambda a: a):
-    """A started thread that calls ``refine_many`` once on hypotheses of the kernel's
-    output shapes (zeros, costs +inf) with the group's per-slot ``arrays``, so that its
-    program is traced and compiled while the main thread compiles the kernel; None when
-    refinement is off or a call of this signature was already made in this process
-    (then it is compiled, or being compiled, already). Join it before the first real
-    refinement: that call then finds the program ready."""
+    """A thread (not started) that calls ``refine_many`` once on hypotheses of the
+    kernel's output shapes (zeros, costs +inf) with the group's per-slot ``arrays``, so
+    that its program is traced and compiled while the main thread compiles the kernel;
+    None when refinement is off or a call of this signature was already made in this
+    process (then it is compiled, or being compiled, already). Start it once the
+    kernel's program is traced and lowered (``_cache.after_export``: the two tracings
+    would share the GIL, and a cold first fit waits on the kernel's), and join it before
+    the first real refinement: that call then finds the program ready."""
     if not (options.refine and COMPILE_AHEAD):
         return None
     slots_count, size = arrays["points"].shape[:2]
@@ -68,10 +71,8 @@ def refine_ahead(cls: type[Model], options: FitOptions, arrays: dict, rows: int,
         except Exception:  # (the real call raises it, in the caller's thread)
             _ahead.discard(signature)
 
-    thread = threading.Thread(target=compile_refinement, name="jaxfit-refine-ahead",
-                              daemon=True)
-    thread.start()
-    return thread
+    return threading.Thread(target=compile_refinement, name="jaxfit-refine-ahead",
+                            daemon=True)
 
 
 def call_groups(sizes, devices: int = 1) -> list[list[int]]:
@@ -195,10 +196,12 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
     while active.any() and batch * batch_size < options.max_hypotheses:
         searching = subset_rows(active, len(devices))
         a = on(searching)
-        theta, cost, found, _ = batch_best_many(
-            cls, batch_size, est.name, a["points"], a["normals"], a["n"], a["n_sample"],
-            a["keys"], a["threshold"], a["bounds"], batch, gated, options.sampler,
-            options.scorer)
+        # (the refinement's thread starts once the kernel is traced and lowered)
+        with after_export(ahead.start if ahead is not None and batch == 0 else None):
+            theta, cost, found, _ = batch_best_many(
+                cls, batch_size, est.name, a["points"], a["normals"], a["n"],
+                a["n_sample"], a["keys"], a["threshold"], a["bounds"], batch, gated,
+                options.sampler, options.scorer)
         where = np.arange(rows_count) if searching is None else searching  # slot of each row
         batch += 1
         drawn[active] = batch * batch_size
