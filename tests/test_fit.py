@@ -104,9 +104,10 @@ def test_same_key_same_result_and_keys_matter():
 
 
 def test_keys_made_in_numpy_are_jax_fold_ins():
-    # Threefry keys outside the kernels are derived in NumPy (no program to compile):
-    # the same bits as jax.random.fold_in, for any seed and index; another PRNG (rbg)
-    # takes the jitted path and gives its own fold_ins.
+    # An int seed's threefry keys are derived in NumPy (no program to compile): the same
+    # bits as jax.random.fold_in, for any seed and index, as the jitted paths of a JAX
+    # key's keys and a normal pool's key give; another PRNG (rbg) takes the jitted path
+    # and gives its own fold_ins.
     from jaxfit import _checks
     from jaxfit.engine import keys
 

@@ -197,7 +197,7 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
         searching = subset_rows(active, len(devices))
         a = on(searching)
         # (the refinement's thread starts once the kernel is traced and lowered)
-        with after_export(ahead.start if ahead is not None and batch == 0 else None):
+        with after_export(None if ahead is None else ahead.start):
             theta, cost, found, _ = batch_best_many(
                 cls, batch_size, est.name, a["points"], a["normals"], a["n"],
                 a["n_sample"], a["keys"], a["threshold"], a["bounds"], batch, gated,

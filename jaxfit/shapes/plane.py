@@ -90,8 +90,9 @@ class Plane(Model):
         spread = _length_2d(u - mu, v - mv)
         _, radius = g.main_interval(spread, g.GAP_THRESHOLDS * threshold)
         patch = spread <= radius
-        center = _patch_center(in_plane, u[patch].sum() / np.count_nonzero(patch),
-                               v[patch].sum() / np.count_nonzero(patch), offset, normal)
+        kept = np.count_nonzero(patch)
+        center = _patch_center(in_plane, u[patch].sum() / kept, v[patch].sum() / kept,
+                               offset, normal)
         return cls(normal, np.float64(offset), center, np.float64(radius))
 
     @classmethod
@@ -119,8 +120,8 @@ class Plane(Model):
         starts = (np.cumsum(kept) - kept).tolist()
         up, vp = u[patch], v[patch]
         # (each patch summed over its own slice: reduceat sums in another order)
-        su = np.array([up[s:s + k].sum() for s, k in zip(starts, kept.tolist(), strict=True)])
-        sv = np.array([vp[s:s + k].sum() for s, k in zip(starts, kept.tolist(), strict=True)])
+        su, sv = np.array([(up[s:s + k].sum(), vp[s:s + k].sum())
+                           for s, k in zip(starts, kept.tolist(), strict=True)]).reshape(-1, 2).T
         centers = _patch_center(in_plane.transpose(1, 2, 0), su / kept, sv / kept,
                                 offsets, normals.T).T  # (C, 3)
         if scales is not None:
