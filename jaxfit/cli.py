@@ -191,8 +191,9 @@ def _fit_and_report(points, args, json_path=None, mesh_path=None):
     import jaxfit
 
     start = time.perf_counter()
+    polish = getattr(args, "polish", False)  # (LO on the host: see --polish)
     result = jaxfit.fit(points, args.shape, threshold=args.threshold, key=args.seed,
-                        estimator=args.estimator)
+                        estimator=args.estimator, refine=not polish, polish=polish)
     seconds = time.perf_counter() - start
     _print_model(result.model, "fitted")
     print(f"inliers     {result.num_inliers} of {result.inliers.size} "
@@ -424,6 +425,10 @@ def _add_fit(sub):
                                    ".txt .csv .crd .pts .npy")
     _num_points(fit)
     _fit_options(fit, required=True)
+    fit.add_argument("--polish", action="store_true",
+                     help="refit on the host instead of LO's compiled program "
+                          "(FitOptions.polish): a first run compiles one program, not two; "
+                          "as accurate or more, slower once compiled")
     _outputs(fit, "the fitted primitive")
     fit.set_defaults(run=_cmd_fit)
 

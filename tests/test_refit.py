@@ -204,3 +204,51 @@ def test_analytic_jacobian_refits_as_the_differences(shape, monkeypatch):
     np.testing.assert_allclose(analytic[0], differences[0], atol=1e-8)
     np.testing.assert_allclose(analytic[1], differences[1], rtol=1e-9)
     assert analytic[1] < analytic[2]  # (it moved)
+
+
+@pytest.mark.parametrize("shape", ["plane", "sphere", "cylinder"])
+def test_polish_fits_as_lo_does_without_its_program(shape, monkeypatch):
+    # FitOptions.polish: LO's refit on the host after the search. The refinement's
+    # program is never called, the result is the host refit's own stationary point, and
+    # it lies far closer to the truth than the raw minimal-sample fit it starts from.
+    cls = REGISTRY[shape]
+    points, truth, surface = noisy(shape, 3000, seed=11)
+    info = information(shape, truth, surface)
+    raw = jaxfit.fit(points, shape, threshold=3 * SIGMA, key=0, refine=False)
+    loop = importlib.import_module("jaxfit.engine.loop")
+
+    def no_refinement(*args, **kwargs):
+        raise AssertionError("polish must not call the refinement's program")
+
+    monkeypatch.setattr(loop, "refine_many", no_refinement)
+    result = jaxfit.fit(points, shape, threshold=3 * SIGMA, key=0, refine=False, polish=True)
+    theta = result.model.theta()
+    again, _, _ = refine.final_refit(cls, theta, points, 3 * SIGMA)
+    assert noise_distance(info, again, theta) < 0.01
+    assert noise_distance(info, theta, truth) < 25.0
+    assert noise_distance(info, theta, truth) < 0.25 * noise_distance(info, raw.model.theta(),
+                                                                    truth)
+    assert result.cost < raw.cost and result.num_hypotheses == raw.num_hypotheses
+
+
+def test_host_lo_takes_the_wide_band_and_never_raises_the_cost():
+    # From a start a few noise widths off, LO's band (LO_WIDEN thresholds) lets the fit
+    # move; the cost returned is never above the start's.
+    cls = REGISTRY["cylinder"]
+    points, truth, surface = noisy("cylinder", 2000, seed=3)
+    info = information("cylinder", truth, surface)
+    rng = np.random.default_rng(0)
+    canonical = refine.host_canonical(cls)
+    for _ in range(5):
+        start = perturbed(info, truth, 30.0, rng, canonical)
+        theta, cost, first = refine.host_lo(cls, start, points, 3 * SIGMA)
+        assert cost <= first
+        assert noise_distance(info, theta, truth) < noise_distance(info, start, truth)
+
+
+def test_polish_option_is_checked():
+    points = np.random.default_rng(0).normal(size=(100, 3))
+    with pytest.raises(ValueError, match="polish must be True or False"):
+        jaxfit.fit(points, "sphere", refine=False, polish="yes")
+    with pytest.raises(ValueError, match="set refine=False"):
+        jaxfit.fit(points, "sphere", polish=True)

@@ -13,7 +13,7 @@ from ..shapes import Model
 from .cloud import Cloud, estimate_normals, prepare, prepare_many
 from .loop import search
 from .options import Bounds, FitOptions
-from .refine import FINAL_MIN_POINTS, final_refit
+from .refine import FINAL_MIN_POINTS, final_refit, host_lo
 from .result import FitResult
 from .scoring import MSAC
 
@@ -116,7 +116,7 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     estimate_normals(prepared)
 
     thetas, drawn, status = search(cls, checked, prepared, key, seed, which)
-    if checked.refine and checked.final_refit:
+    if checked.polish or (checked.refine and checked.final_refit):
         thetas = refitted(cls, prepared, thetas, checked)
     found = (results_many(cls, prepared, thetas, drawn, status)
              if len(prepared) >= MANY_MIN else [None] * len(prepared))
@@ -238,17 +238,39 @@ def _results_block(cls: type[Model], clouds: list[Cloud], thetas, drawn, status)
 
 def refitted(cls: type[Model], clouds: list[Cloud], thetas, options: FitOptions):
     """thetas (C, P) (normalised frames) after ``refine.final_refit`` on all points of
-    each cloud larger than ``FINAL_MIN_POINTS`` (LO saw every point of the others), for
-    the MSAC scorer (the least-squares fit on the inliers is MSAC's own optimum)."""
+    each cloud larger than ``FINAL_MIN_POINTS`` (LO saw every point of the others), or
+    with ``options.polish`` after ``refine.host_lo`` on every cloud, for the MSAC scorer
+    (the least-squares fit on the inliers is MSAC's own optimum)."""
+    if options.polish:
+        return np.stack([polished(cls, cloud, starts) for cloud, starts in
+                         zip(clouds, thetas, strict=True)])
     if type(options.scorer) is not MSAC:
         return thetas
     out = np.array(thetas, np.float64)
     for j, cloud in enumerate(clouds):
         if len(cloud.points) > FINAL_MIN_POINTS and np.all(np.isfinite(out[j])):
-            out[j] = final_refit(cls, out[j], cloud.unit, cloud.threshold / cloud.scale,
-                                 Bounds(np.asarray(cloud.unit_bounds().values, np.float64)),
-                                 cloud.normals if cloud.gated else None)[0]
+            out[j] = final_refit(cls, out[j], *_refit_args(cloud))[0]
     return out
+
+
+def polished(cls: type[Model], cloud: Cloud, starts):
+    """theta (P,): the lowest-cost ``refine.host_lo`` of the finite starts (S, P) (the
+    search's with ``FitOptions.polish``) on ``cloud`` (normalised frame); NaN if none."""
+    best, lowest = np.full(starts.shape[-1], np.nan), np.inf
+    for start in np.asarray(starts, np.float64):
+        if np.all(np.isfinite(start)):
+            theta, cost, _ = host_lo(cls, start, *_refit_args(cloud))
+            if cost < lowest:
+                best, lowest = theta, cost
+    return best
+
+
+def _refit_args(cloud: Cloud):
+    """The arguments of ``final_refit`` after theta for ``cloud``: its unit points, its
+    threshold and bounds in their frame, and its normals where they gate."""
+    return (cloud.unit, cloud.threshold / cloud.scale,
+            Bounds(np.asarray(cloud.unit_bounds().values, np.float64)),
+            cloud.normals if cloud.gated else None)
 
 
 def agreeing(cls: type[Model], theta, cloud: Cloud):

@@ -135,14 +135,17 @@ def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed
     stands for; ``which``: each cloud's index in the call (its key is
     fold_in(key, index); default 0, 1, ...).
 
-    Returns the best theta (C, P) per cloud (NaN where none was valid), hypotheses drawn
-    (C,) and the Status (C,) of each cloud, in the order of ``clouds``.
+    Returns the best theta (C, P) per cloud (NaN where none was valid; with
+    ``options.polish`` the best batch's ``cls.lo_starts`` best (C, S, P), NaN where
+    invalid, for ``refine.host_lo`` to refine each), hypotheses drawn (C,) and the Status
+    (C,) of each cloud, in the order of ``clouds``.
     """
     which = list(range(len(clouds))) if which is None else list(which)
     groups = call_groups([c.points.shape[0] for c in clouds], len(jax.local_devices()))
     if len(groups) == 1:
         return search_group(cls, options, clouds, key, seed, which)
-    theta = np.full((len(clouds), cls.num_params), np.nan)
+    theta = np.full((len(clouds),) + ((cls.lo_starts,) if options.polish else ())
+                    + (cls.num_params,), np.nan)
     drawn = np.zeros(len(clouds), int)
     status = np.empty(len(clouds), dtype=object)
     for group in groups:
@@ -185,7 +188,8 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
             return every
         return jax.tree.map(lambda a: put(a[slots_of]), host)
 
-    best_theta = np.full((rows_count, cls.num_params), np.nan)
+    starts = (cls.lo_starts,) if options.polish else ()  # (the kept starts of a best batch)
+    best_theta = np.full((rows_count,) + starts + (cls.num_params,), np.nan)
     best_cost, best_raw = np.full(rows_count, np.inf), np.full(rows_count, np.inf)
     best_count = np.zeros(rows_count)
     last_improvement = np.zeros(rows_count, int)
@@ -227,9 +231,14 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
                 options.scorer)
             where = np.arange(rows_count) if polishing is None else polishing
         else:
+            if starts:  # (every start; an invalid one, of cost +inf, as NaN)
+                kept = np.where(np.isfinite(np.asarray(cost))[..., None], np.asarray(theta),
+                                np.nan)
             # (indexing on the host: a JAX slice per array cost ~0.2 ms each)
             theta, cost, found = (np.asarray(x)[:, 0] for x in (theta, cost, found))
-        full = (np.full((rows_count, cls.num_params), np.nan), np.full(rows_count, np.inf),
+            if starts:
+                theta = kept
+        full = (np.full(best_theta.shape, np.nan), np.full(rows_count, np.inf),
                 np.zeros(rows_count))
         for out, value in zip(full, (theta, cost, found), strict=True):
             out[where] = np.asarray(value)

@@ -158,6 +158,10 @@ class FitOptions:
     final_refit : a float64 least-squares refit on all inliers of each cloud of more than
         ``refine.FINAL_MIN_POINTS`` points after the search (``refine.final_refit``);
         off with ``refine=False`` too.
+    polish : with ``refine=False``, LO's refit of each cloud's best hypothesis on the host
+        after the search (``refine.host_lo``, float64, every cloud): no refinement
+        program is compiled, for one-off fits in a fresh process, where compiling it
+        costs more than all its rounds (the decomposition's fits). MSAC only.
     estimator : "thesis" or "oriented" (see ``Model.estimators``); default the shape's
         ``default_estimator``.
     radius_range, axis_prior, normal_angle : the user's bounds (see ``Bounds.of``).
@@ -176,6 +180,7 @@ class FitOptions:
     min_hypotheses: int | None = None
     refine: bool = True
     final_refit: bool = True
+    polish: bool = False
     estimator: str | None = None
     radius_range: tuple | None = None
     axis_prior: tuple | None = None
@@ -222,9 +227,15 @@ class FitOptions:
                                                       and min_hypotheses >= 0):
             raise ValueError(
                 f"min_hypotheses must be a non-negative integer, got {min_hypotheses!r}")
-        for name in ("refine", "final_refit"):
+        for name in ("refine", "final_refit", "polish"):
             if not isinstance(getattr(self, name), bool | np.bool_):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.polish and self.refine:
+            raise ValueError("polish refits on the host instead of LO: set refine=False "
+                             "with it")
+        if self.polish and type(self.scorer) is not MSAC:
+            raise ValueError(f"polish fits least squares, MSAC's own optimum: it needs the "
+                             f"MSAC scorer, got {self.scorer!r}")
         for stage, kind in ((self.sampler, Sampler), (self.scorer, Scorer),
                             (self.stopping, StoppingRule), (self.refiner, LocalOptimizer)):
             if not isinstance(stage, kind):
@@ -242,7 +253,8 @@ class FitOptions:
             batch_size=_batch_size(self.batch_size),
             max_stall=_checks.positive(self.max_stall, "max_stall", integer=True),
             min_hypotheses=int(min_hypotheses), refine=bool(self.refine),
-            final_refit=bool(self.final_refit), estimator=est.name,
+            final_refit=bool(self.final_refit), polish=bool(self.polish),
+            estimator=est.name,
             bounds=bounds,
         )
 

@@ -361,10 +361,12 @@ def _chunks(n: int):
     return [slice(s, min(s + FINAL_CHUNK, n)) for s in range(0, n, FINAL_CHUNK)]
 
 
-def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None):
+def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None,
+              widen: float = 1.0):
     """MSAC cost () of theta (P,) over points (N, 3), the loop's measure (a point gated
     out on its normal costs t^2), and with ``canonical`` the normal equations of the
-    least-squares fit on its inliers: J^T J (P, P) and J^T r (P,), J through
+    least-squares fit on its inliers (with ``widen``, on the points within that many
+    thresholds): J^T J (P, P) and J^T r (P,), J through
     ``canonical`` (the shape's ``theta_jacobian`` times the projection's own Jacobian,
     else forward differences of the residuals). One pass, ``FINAL_CHUNK`` points at a
     time, in float64 (the chunk's columns contiguous: a boolean gather of (N, 3) rows had
@@ -390,7 +392,7 @@ def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None
         inside = r2 < t2
         cost += float(np.sum(np.where(inside, r2, t2)))
         if moved:
-            keep = np.flatnonzero(inside)
+            keep = np.flatnonzero(inside if widen == 1.0 else r2 < widen * widen * t2)
             qi, ri = tuple(block.take(keep, axis=1)), r.take(keep)
             if chain is not None:  # (the projection applied to the sums, at the end)
                 jac = cls.theta_jacobian(theta, qi, np)  # (P, M)
@@ -408,7 +410,8 @@ def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None
 
 
 def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
-                normals=None, steps: int = FINAL_STEPS):
+                normals=None, steps: int = FINAL_STEPS, widen: float = 1.0,
+                min_gain: float = FINAL_GAIN):
     """A least-squares refit of theta (P,) on all the inliers of points (N, 3), in float64
     NumPy (no compiled program): Gauss-Newton steps on the residuals of the current
     inliers (Levenberg-damped on a refusal), each kept only if the MSAC cost over all
@@ -421,6 +424,8 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
     ``points`` are the cloud in the normalised frame, where theta's parameters are O(1).
     theta is first projected in float64 (``host_canonical``: the kernels' float32 axis
     is unit only to ~1e-7, the differences' own step, and had made the Jacobian noise).
+    ``widen``: each step fits the points within that many thresholds (LO's band,
+    ``host_lo``); ``min_gain``: the relative fall in cost below which it stops.
     Returns (theta (P,), its MSAC cost, the cost of the projected theta given); theta
     unchanged when it is not finite or the shape has no NumPy projection.
     """
@@ -430,7 +435,7 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
         return theta, np.inf, np.inf
     args = (points, threshold, normals, None if normals is None else float(bounds.normal_cos))
     theta = canonical(theta)
-    cost, jtj, jtr = _evaluate(cls, theta, *args, canonical=canonical)
+    cost, jtj, jtr = _evaluate(cls, theta, *args, canonical=canonical, widen=widen)
     start, damping = cost, 0.0
     for step_index in range(steps):
         last = step_index == steps - 1  # (its normal equations would go unused)
@@ -442,7 +447,8 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
             candidate = canonical(theta + step)
             if np.all(np.isfinite(candidate)) and (bounds is None
                                                    or bounds.admits(cls, candidate, np)):
-                found = _evaluate(cls, candidate, *args, canonical=None if last else canonical)
+                found = _evaluate(cls, candidate, *args, canonical=None if last else canonical,
+                                  widen=widen)
                 if found[0] <= cost:
                     break
             damping = max(10.0 * damping, 1e-3)
@@ -450,6 +456,18 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
             break  # every retry refused: theta stays where it was
         gain = cost - found[0]
         theta, (cost, jtj, jtr), damping = candidate, found, 0.1 * damping
-        if gain <= FINAL_GAIN * cost:
+        if gain <= min_gain * cost:
             break
+    return theta, cost, start
+
+
+def host_lo(cls: type[Model], theta, points, threshold: float, bounds=None, normals=None):
+    """LO-RANSAC's refit of a hypothesis theta (P,), on the host (no compiled program):
+    ``final_refit``'s steps on the points within ``LO_WIDEN`` thresholds (each step
+    recomputes them, as an LO round does, for up to ``LO_ROUNDS`` steps), then on its
+    inliers; arguments and return as ``final_refit``'s. For one-off fits in a fresh
+    process, where compiling LO's program costs more than all its rounds."""
+    theta, cost, start = final_refit(cls, theta, points, threshold, bounds, normals,
+                                     steps=LO_ROUNDS, widen=LO_WIDEN, min_gain=LO_GAIN)
+    theta, cost, _ = final_refit(cls, theta, points, threshold, bounds, normals)
     return theta, cost, start
