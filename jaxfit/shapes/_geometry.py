@@ -87,10 +87,18 @@ def inverse_transpose3(m, xp=jnp):
     singular m gives inf or NaN, as an inverse would."""
     # Rows and columns rolled, whole arrays at a time: as ``cross`` of rows or entry by
     # entry, the box's refinement compiled XLA fusions by the dozen.
-    after, second = xp.roll(m, -1, axis=0), xp.roll(m, -2, axis=0)
-    cof = (xp.roll(after, -1, axis=1) * xp.roll(second, -2, axis=1)
-           - xp.roll(after, -2, axis=1) * xp.roll(second, -1, axis=1))
+    after, second = _roll3(m, 1, 0, xp), _roll3(m, 2, 0, xp)
+    cof = (_roll3(after, 1, 1, xp) * _roll3(second, 2, 1, xp)
+           - _roll3(after, 2, 1, xp) * _roll3(second, 1, 1, xp))
     return cof / xp.sum(m[0] * cof[0])
+
+
+def _roll3(a, by: int, axis: int, xp):
+    """``xp.roll(a, -by, axis)`` of a length-3 axis; in NumPy by ``take`` (the same
+    entries: ``np.roll``'s own checks were most of a box's float64 refit)."""
+    if xp is np:
+        return a.take((by, (by + 1) % 3, (by + 2) % 3), axis=axis)
+    return xp.roll(a, -by, axis=axis)
 
 
 def weighted_scatter(points, weights):

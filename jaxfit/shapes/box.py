@@ -116,10 +116,17 @@ class Box(Model):
     @staticmethod
     def theta_residual(theta, p, xp):
         # Distance to the nearest of the three planes, keeping its sign.
-        r = [theta[3 * i] * p[0] + theta[3 * i + 1] * p[1] + theta[3 * i + 2] * p[2] - theta[9 + i]
-             for i in range(3)]
-        near01 = xp.where(xp.abs(r[0]) <= xp.abs(r[1]), r[0], r[1])
-        return xp.where(xp.abs(near01) <= xp.abs(r[2]), near01, r[2])
+        r, (first, _, last) = _nearest_plane(theta, p, xp)
+        near01 = xp.where(first, r[0], r[1])
+        return xp.where(~last, near01, r[2])
+
+    @staticmethod
+    def theta_jacobian(theta, p, xp):
+        # Only the nearest plane's entries move the residual: its normal's by the point,
+        # its offset's by -1.
+        _, nearest = _nearest_plane(theta, p, xp)
+        return xp.stack([xp.where(w, c, 0.0) for w in nearest for c in p]
+                        + [xp.where(w, -1.0, 0.0) for w in nearest])
 
     @staticmethod
     def canonicalize(theta, xp=jnp):
@@ -377,3 +384,14 @@ def _opposite_face(proj, near, threshold):
         return np.nan
     close = np.abs(proj - centres[peak]) < threshold  # the smoothed peak may hold none
     return float(proj[close].mean()) if close.any() else np.nan
+
+
+def _nearest_plane(theta, p, xp):
+    """The signed residuals [3 x (...)] of points p (3 coordinates) to the box's three
+    planes (theta as ``Box.theta_residual``'s) and which plane is nearest, as three
+    masks (first wins ties, as ``theta_residual`` picks)."""
+    r = [theta[3 * i] * p[0] + theta[3 * i + 1] * p[1] + theta[3 * i + 2] * p[2] - theta[9 + i]
+         for i in range(3)]
+    first = xp.abs(r[0]) <= xp.abs(r[1])
+    last = ~(xp.abs(xp.where(first, r[0], r[1])) <= xp.abs(r[2]))
+    return r, (first & ~last, ~first & ~last, last)
