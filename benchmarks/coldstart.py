@@ -18,7 +18,9 @@ The methods take turns within each repeat, so the machine's load affects them al
 
 Then, per primitive, a fresh process fits a 2,000-point cloud twice and reports the first
 and second call and JAX's own compile-phase durations (``jax.monitoring``), with the cache
-off, first process (empty folder) and second process.
+off, first process (empty folder) and second process, and a first process fitting with
+``refine=False, polish=True`` (LO on the host: no refinement program; its own empty
+folder).
 
 Then, per primitive, the programs of a cold first fit (each one's trace, lowering and
 compile seconds from ``jax_log_compiles``), with the refinement compiled ahead in a thread
@@ -106,10 +108,11 @@ jax.monitoring.register_event_duration_secs_listener(
 import jaxfit
 from jaxfit.evaluation.synthetic import demo_cloud
 points, _, _ = demo_cloud(sys.argv[1], count=2000, outlier_ratio=0.3, seed=0)
+options = dict(refine=False, polish=True) if sys.argv[2:] == ["polish"] else {{}}
 calls = []
 for _ in range(2):
     start = time.perf_counter()
-    jaxfit.fit(points, sys.argv[1], key=0)
+    jaxfit.fit(points, sys.argv[1], key=0, **options)
     calls.append(time.perf_counter() - start)
 print(json.dumps({{"first": calls[0], "second": calls[1], **phases}}))
 """
@@ -294,9 +297,13 @@ def first_calls(work: Path, repeats: int) -> list[dict]:
         samples: dict[str, list[dict]] = {}
         for turn in range(repeats):
             folder = str(work / f"first-{shape}-{turn}")
-            for state, cache in (("cache off", None), ("first process", folder),
-                                 ("second process", folder)):
-                _, out = wall([sys.executable, "-c", FIRST_CALL.format(), shape], _env(cache))
+            for state, cache, extra in (("cache off", None, []),
+                                        ("first process", folder, []),
+                                        ("second process", folder, []),
+                                        ("first process, polish", folder + "-polish",
+                                         ["polish"])):
+                _, out = wall([sys.executable, "-c", FIRST_CALL.format(), shape, *extra],
+                              _env(cache))
                 samples.setdefault(state, []).append(json.loads(out.strip().splitlines()[-1]))
         for state, runs in samples.items():
             keys = sorted(set().union(*runs))
@@ -561,12 +568,14 @@ def plot(times, rows, path):
     left.invert_yaxis()
     left.set_xlabel("whole-process wall time (s); dots: repeats")
     left.set_title("load a 10k-point cloud, fit one sphere, print", fontsize=10)
-    states = ["cache off", "first process", "second process"]
-    width = 0.27
+    states = [s for s in ("cache off", "first process", "first process, polish",
+                          "second process") if any(r["cache"] == s for r in rows)]
+    width = 0.8 / len(states)
     for j, state in enumerate(states):
         vals = [next(r["first"] for r in rows if r["shape"] == s and r["cache"] == state)
                 for s in SHAPES]
-        right.bar(np.arange(len(SHAPES)) + (j - 1) * width, vals, width, label=state)
+        right.bar(np.arange(len(SHAPES)) + (j - (len(states) - 1) / 2) * width, vals, width,
+                  label=state)
     right.set_xticks(range(len(SHAPES)), SHAPES)
     right.set_ylabel("first fit in the process (s)")
     right.set_title("first-call time per primitive (2,000 points)", fontsize=10)
