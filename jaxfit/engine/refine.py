@@ -40,6 +40,12 @@ LM_STEPS = 5
 #: biased model refitted on exactly its own inliers keeps its bias; the wider band lets
 #: it move.
 LO_WIDEN = 2.0
+#: ``host_lo`` (polish) ends with a refit on the inliers alone where their residuals sit
+#: well inside the threshold, their RMS below this many thresholds (``narrows``): a
+#: truncated Gaussian at 3 sigma has an RMS of 0.33 thresholds, noise that fills the band
+#: (the thesis's SN scenarios) 0.58 (docs/engine.md, "Session 22"; LO's own rounds
+#: narrowed so were measured and not kept).
+NARROW_RMS = 0.45
 
 
 class LocalOptimizer:
@@ -275,6 +281,19 @@ def lo_rounds(cls: type[Model], points, n_valid, threshold, max_rounds: int, ste
     return lo_round, partial(lo_due, max_rounds=max_rounds)
 
 
+def narrows(r, live, threshold, xp=np):
+    """Whether ``host_lo``, converged on LO's wide band at a model whose residuals are r
+    (S,) (the points where live (S,) holds), refits on its inliers alone: where their
+    residuals sit well inside the threshold (RMS below NARROW_RMS thresholds), the noise
+    is small against it, and the wide band's outliers only pull the fit away from the
+    inliers' least-squares fit (RN: 1.4-2.4x closer); where noise fills the band, a cut
+    at one threshold biases the fit (SN), and the wide band's fit stays."""
+    inside = live & (xp.abs(r) < threshold)
+    count = xp.maximum(xp.sum(inside), 1)
+    mean2 = xp.sum(xp.where(inside, r * r, 0.0)) / count
+    return mean2 < (NARROW_RMS * threshold) ** 2
+
+
 def lo_due(carry, max_rounds: int):
     """Whether the carry (``lo_start``; any leading axes) is due another LO round: its
     last round was kept and the cap is not reached."""
@@ -465,9 +484,15 @@ def host_lo(cls: type[Model], theta, points, threshold: float, bounds=None, norm
     """LO-RANSAC's refit of a hypothesis theta (P,), on the host (no compiled program):
     ``final_refit``'s steps on the points within ``LO_WIDEN`` thresholds (each step
     recomputes them, as an LO round does, for up to ``LO_ROUNDS`` steps), then on its
-    inliers; arguments and return as ``final_refit``'s. For one-off fits in a fresh
-    process, where compiling LO's program costs more than all its rounds."""
+    inliers where they sit well inside the threshold (``narrows``); arguments and return
+    as ``final_refit``'s. For one-off fits in a fresh process, where compiling LO's
+    program costs more than all its rounds."""
     theta, cost, start = final_refit(cls, theta, points, threshold, bounds, normals,
                                      steps=LO_ROUNDS, widen=LO_WIDEN, min_gain=LO_GAIN)
-    theta, cost, _ = final_refit(cls, theta, points, threshold, bounds, normals)
+    if np.all(np.isfinite(theta)):
+        r = cls.theta_residual(theta, tuple(np.asarray(points).T), np)
+        live = True if normals is None else np.abs(cls.residual_slope(
+            theta, tuple(np.asarray(points).T), tuple(normals.T), np)[1]) >= bounds.normal_cos
+        if narrows(r, live, threshold):
+            theta, cost, _ = final_refit(cls, theta, points, threshold, bounds, normals)
     return theta, cost, start
