@@ -257,9 +257,10 @@ def polished(cls: type[Model], cloud: Cloud, starts):
     """theta (P,): the lowest-cost ``refine.host_lo`` of the finite starts (S, P) (the
     search's with ``FitOptions.polish``) on ``cloud`` (normalised frame); NaN if none."""
     best, lowest = np.full(starts.shape[-1], np.nan), np.inf
+    args = _refit_args(cloud)
     for start in np.asarray(starts, np.float64):
         if np.all(np.isfinite(start)):
-            theta, cost, _ = host_lo(cls, start, *_refit_args(cloud))
+            theta, cost, _ = host_lo(cls, start, *args)
             if cost < lowest:
                 best, lowest = theta, cost
     return best

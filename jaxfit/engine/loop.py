@@ -231,13 +231,12 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
                 options.scorer)
             where = np.arange(rows_count) if polishing is None else polishing
         else:
-            if starts:  # (every start; an invalid one, of cost +inf, as NaN)
-                kept = np.where(np.isfinite(np.asarray(cost))[..., None], np.asarray(theta),
-                                np.nan)
             # (indexing on the host: a JAX slice per array cost ~0.2 ms each)
-            theta, cost, found = (np.asarray(x)[:, 0] for x in (theta, cost, found))
-            if starts:
-                theta = kept
+            theta, cost, found = (np.asarray(x) for x in (theta, cost, found))
+            # (with polish every start, an invalid one (cost +inf) as NaN)
+            theta = (np.where(np.isfinite(cost)[..., None], theta, np.nan) if starts
+                     else theta[:, 0])
+            cost, found = cost[:, 0], found[:, 0]
         full = (np.full(best_theta.shape, np.nan), np.full(rows_count, np.inf),
                 np.zeros(rows_count))
         for out, value in zip(full, (theta, cost, found), strict=True):

@@ -158,10 +158,10 @@ class FitOptions:
     final_refit : a float64 least-squares refit on all inliers of each cloud of more than
         ``refine.FINAL_MIN_POINTS`` points after the search (``refine.final_refit``);
         off with ``refine=False`` too.
-    polish : with ``refine=False``, LO's refit of each cloud's best hypothesis on the host
-        after the search (``refine.host_lo``, float64, every cloud): no refinement
-        program is compiled, for one-off fits in a fresh process, where compiling it
-        costs more than all its rounds (the decomposition's fits). MSAC only.
+    polish : with ``refine=False``, LO's refit on the host after the search
+        (``refine.host_lo``, float64, every cloud, each of the best batch's
+        ``lo_starts`` starts): no refinement program is compiled, for one-off fits in a
+        fresh process, where compiling it costs more than all its rounds. MSAC only.
     estimator : "thesis" or "oriented" (see ``Model.estimators``); default the shape's
         ``default_estimator``.
     radius_range, axis_prior, normal_angle : the user's bounds (see ``Bounds.of``).

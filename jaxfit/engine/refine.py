@@ -281,17 +281,16 @@ def lo_rounds(cls: type[Model], points, n_valid, threshold, max_rounds: int, ste
     return lo_round, partial(lo_due, max_rounds=max_rounds)
 
 
-def narrows(r, live, threshold, xp=np):
+def narrows(r, live, threshold) -> bool:
     """Whether ``host_lo``, converged on LO's wide band at a model whose residuals are r
     (S,) (the points where live (S,) holds), refits on its inliers alone: where their
     residuals sit well inside the threshold (RMS below NARROW_RMS thresholds), the noise
     is small against it, and the wide band's outliers only pull the fit away from the
     inliers' least-squares fit (RN: 1.4-2.4x closer); where noise fills the band, a cut
     at one threshold biases the fit (SN), and the wide band's fit stays."""
-    inside = live & (xp.abs(r) < threshold)
-    count = xp.maximum(xp.sum(inside), 1)
-    mean2 = xp.sum(xp.where(inside, r * r, 0.0)) / count
-    return mean2 < (NARROW_RMS * threshold) ** 2
+    inside = live & (np.abs(r) < threshold)
+    mean2 = np.sum(np.where(inside, r * r, 0.0)) / max(np.count_nonzero(inside), 1)
+    return bool(mean2 < (NARROW_RMS * threshold) ** 2)
 
 
 def lo_due(carry, max_rounds: int):
@@ -490,9 +489,10 @@ def host_lo(cls: type[Model], theta, points, threshold: float, bounds=None, norm
     theta, cost, start = final_refit(cls, theta, points, threshold, bounds, normals,
                                      steps=LO_ROUNDS, widen=LO_WIDEN, min_gain=LO_GAIN)
     if np.all(np.isfinite(theta)):
-        r = cls.theta_residual(theta, tuple(np.asarray(points).T), np)
+        q = tuple(np.asarray(points).T)
+        r = cls.theta_residual(theta, q, np)
         live = True if normals is None else np.abs(cls.residual_slope(
-            theta, tuple(np.asarray(points).T), tuple(normals.T), np)[1]) >= bounds.normal_cos
+            theta, q, tuple(normals.T), np)[1]) >= bounds.normal_cos
         if narrows(r, live, threshold):
             theta, cost, _ = final_refit(cls, theta, points, threshold, bounds, normals)
     return theta, cost, start
