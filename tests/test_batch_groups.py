@@ -124,3 +124,42 @@ def test_regrouping_the_refinement_between_rounds_changes_no_result(shape):
         np.testing.assert_allclose(a.cost, b.cost, rtol=1e-5)
         np.testing.assert_array_equal(a.inliers, b.inliers)
         assert (a.num_inliers, a.num_hypotheses) == (b.num_inliers, b.num_hypotheses)
+
+
+def test_large_groups_are_cut_into_parts_of_their_bucket():
+    # A group of many clouds runs in parts of at most PART_CLOUDS, or one per core of at
+    # least PART_LEAST; every part keeps its group's bucket, and a part stays whole on
+    # a GPU (cores 0).
+    sizes = [300] * 600 + [1500] * 100 + [10**5] * 3
+    groups = loop.call_groups(sizes)
+    assert [len(g) for g in groups] == [700, 3]
+    cut = loop.parts(sizes, groups, cores=2)
+    assert [len(p) for p, _, _ in cut] == [234, 233, 233, 3]
+    assert [(b, s) for _, b, s in cut] == [(2048, 256)] * 3 + [(131072, None)]
+    assert sorted(i for p, _, _ in cut for i in p) == list(range(len(sizes)))
+    # Parts of one group share one slot count (one program), the first a cloud longer.
+    for count, cores, lengths, rows in ((256, 1, [256], None), (256, 2, [128, 128], 128),
+                                        (255, 2, [255], None), (257, 2, [129, 128], 256),
+                                        (300, 1, [150, 150], 256)):
+        found = loop.parts([300] * count, [list(range(count))], cores=cores)
+        assert [len(p) for p, _, _ in found] == lengths
+        assert {s for _, _, s in found} == {rows}
+    assert loop.parts(sizes, groups, cores=0) == [(groups[0], 2048, None),
+                                                  (groups[1], 131072, None)]
+
+
+def test_clouds_searched_in_parts_get_the_results_of_one_loop(monkeypatch):
+    # The 32 small clouds cut into two parts of 16 (searched at once in two threads):
+    # every result the same, bit for bit, as in one loop of 32.
+    clouds, shapes = clouds_and_kernel_shapes(monkeypatch)
+    monkeypatch.setattr(loop, "cores", lambda: 0)
+    together = jaxfit.fit_batch(clouds, "sphere", key=3)
+    assert (32, 1024) in shapes and (16, 1024) not in shapes
+    monkeypatch.setattr(loop, "cores", lambda: 2)
+    monkeypatch.setattr(loop, "PART_LEAST", 16)
+    parts = jaxfit.fit_batch(clouds, "sphere", key=3)
+    assert (16, 1024) in shapes
+    for a, b in zip(together, parts, strict=True):
+        assert a.model.to_dict() == b.model.to_dict()
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+        assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)

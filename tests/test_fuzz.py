@@ -517,7 +517,7 @@ def _stopped_at_the_kernels():
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(_FIT_MODULE, "estimate_normals", reached)
-        patch.setattr(_FIT_MODULE, "search", reached)
+        patch.setattr(_FIT_MODULE, "searches", reached)
         patch.setattr(_DETECT_MODULE, "estimate_normals", reached)
         try:
             yield

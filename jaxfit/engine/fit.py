@@ -11,7 +11,7 @@ from .. import _checks
 from ..io.inputs import converted_batch
 from ..shapes import Model
 from .cloud import Cloud, estimate_normals, prepare, prepare_many
-from .loop import search
+from .loop import searches
 from .options import Bounds, FitOptions
 from .refine import FINAL_MIN_POINTS, final_refit, host_lo
 from .result import FitResult
@@ -115,20 +115,23 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
         return results
     estimate_normals(prepared)
 
-    thetas, drawn, status = search(cls, checked, prepared, key, seed, which)
-    if checked.polish or (checked.refine and checked.final_refit):
-        thetas = refitted(cls, prepared, thetas, checked)
-    found = (results_many(cls, prepared, thetas, drawn, status)
-             if len(prepared) >= MANY_MIN else [None] * len(prepared))
-    for j, (i, cloud) in enumerate(zip(which, prepared, strict=True)):
-        if found[j] is not None:
-            results[i] = found[j]
-            continue
-        try:  # (cloud by cloud: where results_many gave none, this raises the why)
-            results[i] = result(cls, cloud, thetas[j], drawn[j], status[j], checked)
-        except _checks.FitError as err:
-            if not skip_failures:
-                raise named(i, err) from None
+    for part, (thetas, drawn, status) in searches(cls, checked, prepared, key, seed, which):
+        # (while the next parts are searched: ``loop.searches``)
+        clouds = [prepared[j] for j in part]
+        if checked.polish or (checked.refine and checked.final_refit):
+            thetas = refitted(cls, clouds, thetas, checked)
+        found = (results_many(cls, clouds, thetas, drawn, status)
+                 if len(clouds) >= MANY_MIN else [None] * len(clouds))
+        for k, j in enumerate(part):
+            i = which[j]
+            if found[k] is not None:
+                results[i] = found[k]
+                continue
+            try:  # (cloud by cloud: where results_many gave none, this raises the why)
+                results[i] = result(cls, clouds[k], thetas[k], drawn[k], status[k], checked)
+            except _checks.FitError as err:
+                if not skip_failures:
+                    raise named(i, err) from None
     return results
 
 

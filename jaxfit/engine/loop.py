@@ -6,6 +6,8 @@ into groups of similar point buckets (``call_groups``), one padded loop each.
 
 from __future__ import annotations
 
+import concurrent.futures
+import os
 import threading
 
 import jax
@@ -14,7 +16,7 @@ import numpy as np
 from .. import _checks
 from .._cache import after_export
 from ..shapes import Model
-from .backend import placer, slots
+from .backend import on_cpu, placer, slots
 from .cloud import Cloud, bucket_size
 from .kernel import batch_best_many, refine_many
 from .keys import cloud_keys, keys_at, seed_cloud_keys
@@ -30,6 +32,16 @@ SHARE_POINTS = 1 << 16
 #: Whether a group's first refinement is compiled in a thread while the kernel compiles
 #: (XLA's compilation releases the GIL; docs/engine.md, "Compile cost").
 COMPILE_AHEAD = True
+
+#: On the CPU (one device) a group of many clouds is searched in parts of at most
+#: PART_CLOUDS clouds (and at least PART_LEAST, where it is cut to give every core one),
+#: one part per core at once in threads: for clouds of a few hundred points XLA's CPU
+#: runtime keeps a second core busy only part of a call (the refinement of 1000 such
+#: clouds ran faster on one core than on two), while independent calls run side by side,
+#: and the caller turns finished parts into results meanwhile (docs/engine.md,
+#: "Session 23").
+PART_CLOUDS = 256
+PART_LEAST = 128
 
 _ahead: set = set()  # the refinement calls compiled ahead in this process
 
@@ -128,42 +140,88 @@ def _keys(key, seed, which, count: int, rows_count: int):
     return keys_at(base, list(which) + [which[0]] * (rows_count - count))
 
 
-def search(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
-           which=None):
-    """Run the checked ``options`` on the prepared clouds, one ``search_group`` per group
-    of ``call_groups``; ``key`` is the call's JAX key, or None with the int ``seed`` it
-    stands for; ``which``: each cloud's index in the call (its key is
+def parts(sizes, groups, cores: int = 1) -> list[tuple[list[int], int, int | None]]:
+    """(clouds, bucket, slots) of each ``search_group`` of a call whose clouds have
+    ``sizes`` points and form ``groups`` (``call_groups``; clouds as indices into sizes):
+    each group padded to its largest cloud's bucket, and cut into near-equal runs of at
+    most PART_CLOUDS clouds, or into ``cores`` runs of at least PART_LEAST where it has
+    that many; the runs of a group padded to its bucket and to one slot count (one
+    program), so that a cloud's result does not depend on the cut. slots None: the
+    group's own (it is not cut). ``cores`` 0: no group is cut."""
+    out = []
+    for group in groups:
+        bucket = bucket_size(max(sizes[i] for i in group))
+        pieces = 0 if not cores else max(-(-len(group) // PART_CLOUDS),
+                                         min(cores, len(group) // PART_LEAST))
+        if pieces <= 1:
+            out.append((group, bucket, None))
+            continue
+        rows = slots(-(-len(group) // pieces), 1)
+        out.extend((run.tolist(), bucket, rows)
+                   for run in np.array_split(np.asarray(group), pieces))
+    return out
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
+             which=None):
+    """Run the checked ``options`` on the prepared clouds, one ``search_group`` per part
+    of ``parts``, yielding (part, (theta, drawn, status)) in the parts' order: the part's
+    clouds (indices into ``clouds``), the best theta (C, P) of each (NaN where none was
+    valid; with ``options.polish`` the best batch's ``cls.lo_starts`` best (C, S, P),
+    NaN where invalid, for ``refine.host_lo`` to refine each), hypotheses drawn (C,)
+    and the Status (C,) of each. ``key`` is the call's JAX key, or None with the int
+    ``seed`` it stands for; ``which``: each cloud's index in the call (its key is
     fold_in(key, index); default 0, 1, ...).
 
-    Returns the best theta (C, P) per cloud (NaN where none was valid; with
-    ``options.polish`` the best batch's ``cls.lo_starts`` best (C, S, P), NaN where
-    invalid, for ``refine.host_lo`` to refine each), hypotheses drawn (C,) and the Status
-    (C,) of each cloud, in the order of ``clouds``.
+    Where a group was cut (on the CPU, one device), the parts run one per core at once
+    in threads, and the next ones go on while the caller works on the one it was given;
+    else one after another in the caller's thread.
     """
     which = list(range(len(clouds))) if which is None else list(which)
-    groups = call_groups([c.points.shape[0] for c in clouds], len(jax.local_devices()))
-    if len(groups) == 1:
-        return search_group(cls, options, clouds, key, seed, which)
-    theta = np.full((len(clouds),) + ((cls.lo_starts,) if options.polish else ())
-                    + (cls.num_params,), np.nan)
-    drawn = np.zeros(len(clouds), int)
-    status = np.empty(len(clouds), dtype=object)
-    for group in groups:
-        found = search_group(cls, options, [clouds[j] for j in group], key, seed,
-                             [which[j] for j in group])
-        theta[group], drawn[group], status[group] = found
-    return theta, drawn, status
+    devices = len(jax.local_devices())
+    sizes = [c.points.shape[0] for c in clouds]
+    groups = call_groups(sizes, devices)
+    count = cores() if devices == 1 and on_cpu() else 0  # (a GPU takes a group whole)
+    todo = parts(sizes, groups, count)
+
+    def run(part):
+        clouds_of, bucket, rows = part
+        return search_group(cls, options, [clouds[j] for j in clouds_of], key, seed,
+                            [which[j] for j in clouds_of], bucket, rows)
+
+    if len(todo) == len(groups):  # (no group was cut)
+        for part in todo:
+            yield part[0], run(part)
+        return
+    with concurrent.futures.ThreadPoolExecutor(min(len(todo), count),
+                                               thread_name_prefix="jaxfit-search") as pool:
+        pending = [pool.submit(run, part) for part in todo]
+        try:
+            for part, future in zip(todo, pending, strict=True):
+                yield part[0], future.result()
+        finally:  # (the caller stopped early: the parts not started are dropped)
+            for future in pending:
+                future.cancel()
 
 
 def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
-                 which=None):
-    """``search`` for clouds that share one loop: padded to the largest one's bucket."""
+                 which=None, size: int | None = None, rows: int | None = None):
+    """The search of clouds that share one loop (as ``searches`` gives it for a part),
+    padded to ``size`` points (a bucket; default the largest cloud's) and ``rows``
+    slots (default ``backend.slots`` of the clouds)."""
     est = cls.estimator(options.estimator)
     count = len(clouds)
     devices = jax.local_devices()
-    rows_count = slots(count, len(devices))
+    rows_count = slots(count, len(devices)) if rows is None else rows
     n_max = max(c.points.shape[0] for c in clouds)
-    size = bucket_size(n_max)
+    size = bucket_size(n_max) if size is None else size
     dtype = jax.dtypes.canonicalize_dtype(np.float64)  # float32 unless x64 is on
     order = list(range(count)) + [0] * (rows_count - count)  # padding slots repeat cloud 0
     put = placer(devices)
