@@ -7,7 +7,9 @@ each: docs/engine.md).
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
+import os
 import warnings
 
 import jax
@@ -103,3 +105,24 @@ def placer(devices):
     mesh = jax.sharding.Mesh(np.asarray(devices), ("clouds",))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("clouds"))
     return lambda array: jax.device_put(array, sharding)
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def in_threads(fn, items, workers: int):
+    """(item, fn(item)) for each of items, in their order, ``workers`` calls at a time in
+    threads (JAX's calls and XLA's compiler release the GIL); the caller may stop early:
+    the calls not yet started are dropped."""
+    with concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="jaxfit") as pool:
+        pending = [pool.submit(fn, item) for item in items]
+        try:
+            for item, future in zip(items, pending, strict=True):
+                yield item, future.result()
+        finally:
+            for future in pending:
+                future.cancel()

@@ -6,8 +6,6 @@ into groups of similar point buckets (``call_groups``), one padded loop each.
 
 from __future__ import annotations
 
-import concurrent.futures
-import os
 import threading
 
 import jax
@@ -16,7 +14,7 @@ import numpy as np
 from .. import _checks
 from .._cache import after_export
 from ..shapes import Model
-from .backend import on_cpu, placer, slots
+from .backend import cores, in_threads, on_cpu, placer, slots
 from .cloud import Cloud, bucket_size
 from .kernel import batch_best_many, refine_many
 from .keys import cloud_keys, keys_at, seed_cloud_keys
@@ -162,13 +160,6 @@ def parts(sizes, groups, cores: int = 1) -> list[tuple[list[int], int, int | Non
     return out
 
 
-def cores() -> int:
-    """The cores this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
-
-
 def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
              which=None):
     """Run the checked ``options`` on the prepared clouds, one ``search_group`` per part
@@ -200,15 +191,8 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
         for part in todo:
             yield part[0], run(part)
         return
-    with concurrent.futures.ThreadPoolExecutor(min(len(todo), count),
-                                               thread_name_prefix="jaxfit-search") as pool:
-        pending = [pool.submit(run, part) for part in todo]
-        try:
-            for part, future in zip(todo, pending, strict=True):
-                yield part[0], future.result()
-        finally:  # (the caller stopped early: the parts not started are dropped)
-            for future in pending:
-                future.cancel()
+    for part, found in in_threads(run, todo, min(len(todo), count)):
+        yield part[0], found
 
 
 def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
