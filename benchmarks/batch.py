@@ -22,7 +22,8 @@ With ``--devices D`` the batch is also timed in a subprocess with D forced host 
 across the devices (on a GPU machine the same code splits them over the GPUs).
 
 With ``--stages`` it instead times each stage of the host path (process CPU seconds,
-so that other jobs on a shared machine count less): one ``fit_batch`` of the clouds and
+so that other jobs on a shared machine count less; the clouds searched in one loop, not
+in concurrent parts): one ``fit_batch`` of the clouds and
 single ``fit`` calls (a plane of 1e3 points with 10 % outliers, a 500-point demo cloud of
 each shape), by wrapping the engine's stage functions (``stage_times``). The kernel and
 refinement calls are waited on, so their time is the device's plus the dispatch.
@@ -145,6 +146,7 @@ STAGES = (("jaxfit.engine.fit", "converted_batch", "convert", False),
           ("jaxfit.engine.fit", "prepare", "prepare", False),
           ("jaxfit.engine.fit", "prepare_many", "prepare", False),
           ("jaxfit.engine.fit", "search", "search", False),
+          ("jaxfit.engine.loop", "search_group", "search", False),
           ("jaxfit.engine.loop", "batch_best_many", "kernel", True),
           ("jaxfit.engine.loop", "refine_many", "refinement", True),
           ("jaxfit.engine.fit", "refitted", "final refit", False),
@@ -160,6 +162,12 @@ def stage_times(run, repeats: int) -> dict:
 
     totals: dict = {}
     restore = []
+    # One loop, not parts in threads (``loop.searches``): a thread's process CPU would
+    # count the other parts' too.
+    loop = importlib.import_module("jaxfit.engine.loop")
+    if hasattr(loop, "cores"):
+        restore.append((loop, "cores", loop.cores))
+        loop.cores = lambda: 0
     for module_name, name, label, wait in STAGES:
         module = importlib.import_module(module_name)
         fn = getattr(module, name, None)
