@@ -163,3 +163,13 @@ def test_clouds_searched_in_parts_get_the_results_of_one_loop(monkeypatch):
         assert a.model.to_dict() == b.model.to_dict()
         np.testing.assert_array_equal(a.inliers, b.inliers)
         assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
+
+
+def test_a_cloud_alone_in_its_loop_is_named_in_the_error():
+    # The large cloud runs in a loop of its own; its error (a threshold nothing lies
+    # within) still names it, since the call has 33 clouds.
+    clouds = [demo_cloud("sphere", count=2000, seed=40)[0]]
+    clouds += [demo_cloud("sphere", count=300, seed=i)[0] for i in range(32)]
+    with pytest.raises(jaxfit.FitError, match=r"^cloud 0: the best sphere hypothesis has "
+                                              r"no inliers"):
+        jaxfit.fit_batch(clouds, "sphere", thresholds=[1e-12] + [None] * 32, key=3)

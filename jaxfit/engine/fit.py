@@ -117,18 +117,20 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
 
     for part, (thetas, drawn, status) in searches(cls, checked, prepared, key, seed, which):
         # (while the next parts are searched: ``loop.searches``)
-        clouds = [prepared[j] for j in part]
+        # (not ``clouds``: ``named`` reads the call's count from it)
+        searched = [prepared[j] for j in part]
         if checked.polish or (checked.refine and checked.final_refit):
-            thetas = refitted(cls, clouds, thetas, checked)
-        found = (results_many(cls, clouds, thetas, drawn, status)
-                 if len(clouds) >= MANY_MIN else [None] * len(clouds))
+            thetas = refitted(cls, searched, thetas, checked)
+        found = (results_many(cls, searched, thetas, drawn, status)
+                 if len(searched) >= MANY_MIN else [None] * len(searched))
         for k, j in enumerate(part):
             i = which[j]
             if found[k] is not None:
                 results[i] = found[k]
                 continue
             try:  # (cloud by cloud: where results_many gave none, this raises the why)
-                results[i] = result(cls, clouds[k], thetas[k], drawn[k], status[k], checked)
+                results[i] = result(cls, searched[k], thetas[k], drawn[k], status[k],
+                                    checked)
             except _checks.FitError as err:
                 if not skip_failures:
                     raise named(i, err) from None
