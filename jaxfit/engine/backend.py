@@ -17,17 +17,20 @@ import numpy as np
 
 from .._cache import stored_jit
 
+#: XLA's older loop emitters in place of its MLIR fusion emitters: the kernel and the
+#: refinement compile in about 0.5-0.65 of the time and run as fast (docs/engine.md,
+#: "Session 24"), and a first fit's time is mostly their compiles.
+LOOP_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
 #: Per-function XLA CPU options for the scoring kernel (PERF.md), passed to ``jax.jit``
 #: so users' ``XLA_FLAGS`` stay untouched; a jax that refuses one gets the defaults.
 CPU_OPTIONS = {
     "xla_cpu_experimental_ynn_fusion_type": "",
     "xla_cpu_prefer_vector_width": 512,
     "xla_cpu_enable_fast_min_max": True,
+    **LOOP_EMITTERS,
 }
-#: The refinement's XLA CPU options: XLA's loop emitters compile its many small fusions
-#: in about half the time of the newer MLIR fusion emitters and run as fast
-#: (docs/engine.md, "Compile options").
-REFINE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+#: The refinement's XLA CPU options.
+REFINE_OPTIONS = LOOP_EMITTERS
 #: On the CPU the scoring kernel splits H hypotheses into this many independent loops
 #: when each gets at least BLOCK_MIN of them: XLA's CPU runtime runs independent loops
 #: side by side, but splits one loop's body over the cores only when it is large.
