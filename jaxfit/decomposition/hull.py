@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cache import stored_jit
 from ..engine import bucket_size
+from ..engine.backend import LOOP_EMITTERS, jit_tuned
 
 #: Points per step of the hull-depth kernel (see ``_hull_depth_blocks``).
 HULL_BLOCK = 256
@@ -139,5 +139,6 @@ def _hull_depth_blocks(points, faces):
     return jax.lax.map(block, points.reshape(-1, HULL_BLOCK, 3))
 
 
-_hull_depth = stored_jit(_hull_depth_blocks)
-_support_max = stored_jit(_support_blocks)
+# (XLA's loop emitters on the CPU: half the compile, the same run time and bits)
+_hull_depth = jit_tuned(_hull_depth_blocks, (), LOOP_EMITTERS)
+_support_max = jit_tuned(_support_blocks, (), LOOP_EMITTERS)
