@@ -13,6 +13,7 @@ import os
 import warnings
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._cache import stored_jit
@@ -51,6 +52,16 @@ def map_leading(fn, args, batch_size: int | None = None):
     if count == batch_size:
         return jax.vmap(fn)(args)
     return jax.lax.map(fn, args, batch_size=batch_size)
+
+
+def batched_like(tree, ref):
+    """The arrays of ``tree`` unchanged in value, each made to depend on the array
+    ``ref`` (a select between two copies of itself, which XLA removes), so that under
+    ``vmap`` a loop carry built from constants is batched from the start wherever ref
+    is. Why: a while_loop's batching rule traces its body again each time it finds
+    another carry batched, and once more after, at every level of nesting."""
+    same = jnp.ravel(ref)[0] == jnp.ravel(ref)[0]
+    return jax.tree.map(lambda a: jnp.where(same, a, a), tree)
 
 
 def on_cpu() -> bool:

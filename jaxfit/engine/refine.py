@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..shapes import Model
-from .backend import map_leading
+from .backend import batched_like, map_leading
 from .scoring import CHUNK, DEFAULT_SCORER, Scorer, score_one, spread_rows
 
 #: An LO round counts as progress only if it lowers the cost by this fraction (on clean
@@ -179,7 +179,8 @@ def _refine_theta(cls: type[Model], theta, points, n_valid, threshold,
     """
     lo_round, going = lo_rounds(cls, points, n_valid, threshold, max_rounds, steps, bounds,
                                 normals, n_chunks, rows, scorer)
-    theta, cost, count, _, _ = jax.lax.while_loop(going, lo_round, lo_start(theta))
+    theta, cost, count, _, _ = jax.lax.while_loop(going, lo_round,
+                                                  batched_like(lo_start(theta), theta))
     return theta, cost, count
 
 
@@ -263,7 +264,7 @@ def lo_rounds(cls: type[Model], points, n_valid, threshold, max_rounds: int, ste
         zero = jnp.zeros((th.size, th.size), th.dtype)
         init = (th, jnp.asarray(jnp.inf, th.dtype), zero, zero[0], weight,
                 jnp.asarray(1e-3, th.dtype), 0, 0)
-        return jax.lax.while_loop(stepping, lm_step, init)[0]
+        return jax.lax.while_loop(stepping, lm_step, batched_like(init, th))[0]
 
     def lo_round(carry):
         # Round 0 scores theta itself; round k > 0 scores the k-th refit.

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from ..shapes import Model
-from .backend import hypothesis_blocks
+from .backend import batched_like, hypothesis_blocks
 
 #: Points per scan step of the scoring kernel; every bucket is a multiple of it.
 CHUNK = 256
@@ -150,4 +150,5 @@ def _score_block(cls, theta_t, points, n_valid, t2, counts, gate, steps, size, s
         return cost, count
 
     zero = jnp.zeros(theta_t.shape[1], points.dtype)
-    return jax.lax.fori_loop(0, steps, step, (zero, zero.astype(jnp.int32)))
+    return jax.lax.fori_loop(0, steps, step, batched_like((zero, zero.astype(jnp.int32)),
+                                                          theta_t))
