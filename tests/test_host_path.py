@@ -46,6 +46,27 @@ def test_prepare_many_is_prepare_bit_for_bit(rng, dtype):
     assert all(_same(a, b) for a, b in zip(many, one, strict=True))
 
 
+def test_prepare_many_in_halves_is_prepare_bit_for_bit(rng, monkeypatch):
+    # A call of at least SPLIT_POINTS points is prepared in two halves side by side
+    # (lowered here, and two cores pretended, so that these few clouds take that path).
+    cloud_module = importlib.import_module("jaxfit.engine.cloud")
+    monkeypatch.setattr(cloud_module, "SPLIT_POINTS", 1000)
+    monkeypatch.setattr(cloud_module, "cores", lambda: 2)
+    bounds = FitOptions().check(Sphere).bounds
+    clouds = _clouds(rng, [500, 37, 2048, 3000, 999])
+    thresholds = [0.02, None, 1, None, np.float32(0.5)]
+    many = prepare_many(clouds, Sphere, thresholds, bounds)
+    one = [prepare(c, Sphere, None, t, False, 0, i, bounds)
+           for i, (c, t) in enumerate(zip(clouds, thresholds, strict=True))]
+    assert len(many) == len(one)
+    assert all(_same(a, b) for a, b in zip(many, one, strict=True))
+    for bad in (0, 4):  # a bad cloud in either half sends the call to prepare
+        broken = list(clouds)
+        broken[bad] = broken[bad].copy()
+        broken[bad][1, 1] = np.nan
+        assert prepare_many(broken, Sphere, thresholds, bounds) is None
+
+
 @pytest.mark.parametrize("shape", ["plane", "sphere"])
 def test_fit_batch_gives_what_the_cloud_by_cloud_path_gives(shape):
     # Lists are not arrays: they take prepare's path, arrays prepare_many's (a plane's
