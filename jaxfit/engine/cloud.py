@@ -149,8 +149,8 @@ def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[C
 
     Why: ``prepare`` is ~40 us of NumPy calls per cloud, 15 % of ``fit_batch`` on 500-point
     clouds (docs/engine.md, "Host path (this round)"). A call of at least ``SPLIT_POINTS``
-    points is prepared in two halves side by side (its passes are memory-bound NumPy
-    loops, which release the GIL), while the kernel's cores would otherwise wait."""
+    points is prepared in two halves side by side: its passes are memory-bound NumPy
+    loops, which release the GIL, and the second core has nothing else to do yet."""
     if not all(isinstance(c, np.ndarray) and c.ndim == 2 and c.shape[1] == 3
                and c.dtype.kind in "fiu" and len(c) >= cls.sample_size for c in clouds):
         return None
