@@ -4,7 +4,6 @@ with its count of real points (so a new cloud size reuses a compiled kernel)."""
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
 import functools
 import math
@@ -14,7 +13,7 @@ import numpy as np
 from .. import _checks
 from ..shapes import Model
 from ..shapes._geometry import column_bounds, row_norms
-from .backend import cores
+from .backend import cores, in_threads
 from .keys import normals_key_data
 from .options import Bounds
 
@@ -156,11 +155,10 @@ def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[C
         return None
     half = len(clouds) // 2
     if half and cores() > 1 and sum(len(c) for c in clouds) >= SPLIT_POINTS:
-        with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxfit") as pool:
-            first = pool.submit(_prepared, clouds[:half], thresholds[:half], bounds)
-            second = _prepared(clouds[half:], thresholds[half:], bounds)
-            first = first.result()
-        return None if first is None or second is None else first + second
+        halves = [found for _, found in in_threads(
+            lambda part: _prepared(clouds[part], thresholds[part], bounds),
+            (slice(None, half), slice(half, None)), 2)]
+        return None if None in halves else halves[0] + halves[1]
     return _prepared(clouds, thresholds, bounds)
 
 
