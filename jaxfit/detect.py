@@ -252,12 +252,23 @@ class Scene:
 
 class _Preview:
     """A Scene as ``io.preview.render`` reads a decomposition: points and parts (each
-    with indices, model and kind)."""
+    with indices, model, kind, and the mesh of the patch of its model that its points
+    cover: ``io.preview.surface_patch`` within the connectivity radius, at least two
+    thresholds; the whole model where no face is that near)."""
 
     def __init__(self, scene: Scene):
+        from .io.preview import surface_patch
+
         self.points = np.asarray(scene.points, np.float64)
-        self.parts = [types.SimpleNamespace(indices=d.indices, model=d.model, kind=d.shape)
-                      for d in scene.shapes]
+        reach = max(float(scene.radius), 2.0 * float(scene.threshold))
+        self.parts = []
+        for d in scene.shapes:
+            whole = d.model.to_mesh()
+            patch = surface_patch(whole, self.points[d.indices], reach) \
+                if reach > 0 and len(d.indices) else None
+            self.parts.append(types.SimpleNamespace(indices=d.indices, model=d.model,
+                                                    kind=d.shape,
+                                                    mesh=whole if patch is None else patch))
 
 
 def _indices(values, name: str) -> np.ndarray:

@@ -239,3 +239,30 @@ def test_the_neighbour_structure_holds_each_distinct_point_once(monkeypatch):
     assert built and max(built) <= len(np.unique(points, axis=0))
     assert [d.shape for d in found.shapes] == ["sphere"]
     assert len(found.shapes[0].indices) == len(points)
+
+
+def test_the_preview_draws_the_patch_a_detection_covers(tmp_path):
+    """A detection's picture is the patch of its primitive that its points cover: a cap
+    of a large sphere is drawn as that cap (every face near the points, a small share
+    of the sphere's area), not as the sphere, which had hidden a free-form scan."""
+    from jaxfit.detect import Detection, Scene, _Preview
+    from jaxfit.io.preview import surface_patch
+
+    rng = np.random.default_rng(0)
+    sphere = jaxfit.Sphere(np.zeros(3), 10.0)
+    directions = rng.normal(size=(2000, 3)) + [0, 0, 6]  # (a cap about +z)
+    cap = 10.0 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    cap = cap[cap[:, 2] > 9.0]
+    reach = 0.4
+    patch = surface_patch(sphere.to_mesh(), cap, reach)
+    centres = patch.triangles.mean(axis=1)
+    gaps = np.linalg.norm(centres[:, None] - cap[None], axis=2).min(axis=1)
+    assert gaps.max() <= reach
+    assert 0.0 < patch.area < 0.25 * sphere.to_mesh().area
+    assert surface_patch(sphere.to_mesh(), cap + [0, 0, 50], reach) is None  # nothing near
+    scene = Scene([Detection(sphere, np.arange(len(cap)), 0.0, 0)], np.empty(0, np.int64),
+                  0.1, 0.1, reach, cap)
+    (part,) = _Preview(scene).parts
+    assert len(part.mesh.faces) == len(patch.faces)
+    scene.save(tmp_path)
+    assert (tmp_path / "preview.png").stat().st_size > 0

@@ -27,6 +27,44 @@ def _shaded(mesh, rgba):
     return np.clip(shade[:, None] * colour, 0, 1)
 
 
+#: ``surface_patch`` splits a patch's faces at most this many times (each split makes four
+#: faces of one) and stops splitting once the patch holds this many faces.
+PATCH_SPLITS = 6
+PATCH_FACES = 8_000
+
+
+def surface_patch(mesh, points, reach: float):
+    """The part of ``mesh`` (a primitive's surface) that ``points`` (M, 3) cover: its faces
+    whose centre lies within ``reach`` of a point and no corner beyond twice that, each
+    split (into four, up to ``PATCH_SPLITS`` times) until none is wider than 1.5 ``reach``
+    or the patch holds ``PATCH_FACES``. None where no face is that near. Why: a detection explains a patch
+    of its primitive, and a free-form scan's spheres and cones, drawn whole, are many
+    times the scan's size and hide it."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.asarray(points, np.float64))
+    for split in range(PATCH_SPLITS + 1):
+        corners = mesh.triangles  # (F, 3, 3)
+        centres = corners.mean(axis=1)
+        widths = np.linalg.norm(corners - centres[:, None], axis=2).max(axis=1)  # (F,)
+        gap = tree.query(centres)[0]
+        # (a face wider than reach may cover a point its centre is not near)
+        near = np.flatnonzero(gap <= reach + widths)
+        if not len(near):
+            return None
+        mesh = mesh.submesh([near], append=True)
+        if widths[near].max() <= 1.5 * reach or split == PATCH_SPLITS \
+                or 4 * len(near) > PATCH_FACES:
+            break
+        mesh = mesh.subdivide()
+    # Its centre within reach, no corner beyond twice that: a sliver (a cone's faces at
+    # its apex) that split too few times is left out rather than drawn as a spike.
+    corners = mesh.triangles
+    far = tree.query(corners.reshape(-1, 3))[0].reshape(-1, 3).max(axis=1)
+    keep = np.flatnonzero((tree.query(corners.mean(axis=1))[0] <= reach) & (far <= 2 * reach))
+    return mesh.submesh([keep], append=True) if len(keep) else None
+
+
 def pyplot():
     """matplotlib.pyplot on the headless Agg backend (imported here: it is slow to import
     and only pictures need it)."""
@@ -39,7 +77,8 @@ def pyplot():
 
 
 def render(decomposition, path, *, size=(11, 5.5), dpi=110):
-    """Write a PNG: left the points coloured by part, right the primitives by type."""
+    """Write a PNG: left the points coloured by part, right the primitives by type (a
+    part's ``mesh`` where it has one, e.g. ``surface_patch``'s, else its model's)."""
     plt = pyplot()
     from matplotlib.patches import Patch
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
@@ -61,7 +100,8 @@ def render(decomposition, path, *, size=(11, 5.5), dpi=110):
     left.set_title(f"input: {len(points)} points, coloured by part", fontsize=10)
     kinds = []
     for part in decomposition.parts:
-        mesh = part.model.to_mesh()
+        mesh = getattr(part, "mesh", None)
+        mesh = part.model.to_mesh() if mesh is None else mesh
         right.add_collection3d(Poly3DCollection(
             mesh.triangles, facecolors=_shaded(mesh, part.model.colour), edgecolors="none",
             alpha=0.95))
