@@ -36,10 +36,10 @@ PATCH_FACES = 8_000
 def surface_patch(mesh, points, reach: float):
     """The part of ``mesh`` (a primitive's surface) that ``points`` (M, 3) cover: its faces
     whose centre lies within ``reach`` of a point and no corner beyond twice that, each
-    split (into four, up to ``PATCH_SPLITS`` times) until none is wider than 1.5 ``reach``
-    or the patch holds ``PATCH_FACES``. None where no face is that near. Why: a detection explains a patch
-    of its primitive, and a free-form scan's spheres and cones, drawn whole, are many
-    times the scan's size and hide it."""
+    split (into four, up to ``PATCH_SPLITS`` times) until none is wider than 1.5
+    ``reach`` or the patch holds ``PATCH_FACES``. None where no face is that near. Why:
+    a detection explains a patch of its primitive, and a free-form scan's spheres and
+    cones, drawn whole, are many times the scan's size and hide it."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(np.asarray(points, np.float64))
