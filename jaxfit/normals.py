@@ -23,6 +23,7 @@ Measurements: docs/normals.md.
 from __future__ import annotations
 
 import concurrent.futures
+import functools
 import numbers
 import os
 
@@ -82,14 +83,45 @@ def nearest(points: np.ndarray, queries: np.ndarray, k: int):
     ``cKDTree`` up to ties, in 1/3 of its time at k = 16 on 1e3 points and 2/3 on 1e4-1e5
     (its heap of k is cheaper; docs/normals.md, "pykdtree for the k nearest"). Raises
     ValueError for k > N, where pykdtree would pad with out-of-range indices."""
-    from pykdtree.kdtree import KDTree
-
+    KDTree = _pykdtree()
     if k > len(points):
         raise ValueError(f"k = {k} nearest asked of {len(points)} points")
     points = np.ascontiguousarray(points, np.float64)
     queries = np.ascontiguousarray(queries, np.float64)
     dist, hood = KDTree(points, leafsize=NEAREST_LEAF).query(queries, k=k)
     return dist, hood.astype(np.intp)
+
+
+#: The spin count pykdtree's own OpenMP runtime is loaded with (``_pykdtree``).
+KDTREE_SPIN = "0"
+
+
+@functools.cache
+def _pykdtree():
+    """pykdtree's KDTree class. Its wheels bundle a private copy of GNU OpenMP, which
+    reads its settings once, as it loads: where that copy is there and not yet loaded,
+    it is loaded with ``GOMP_SPINCOUNT=KDTREE_SPIN`` (the environment as it was before
+    and after), unless the user set the spin count or the wait policy. Why: after each
+    query its threads would spin for milliseconds on the cores the fit's kernel needs
+    next (a cylinder fit of 1e3 points after a pause: 9.2 -> 5.6 ms; docs/normals.md).
+    A libgomp that others share (no private copy) is left as it is."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    spec = importlib.util.find_spec("pykdtree")
+    private = spec is not None and spec.origin is not None and any(
+        (Path(spec.origin).parent.parent / "pykdtree.libs").glob("libgomp*"))
+    if ("pykdtree.kdtree" in sys.modules or not private
+            or {"GOMP_SPINCOUNT", "OMP_WAIT_POLICY"} & set(os.environ)):
+        from pykdtree.kdtree import KDTree
+        return KDTree
+    os.environ["GOMP_SPINCOUNT"] = KDTREE_SPIN
+    try:
+        from pykdtree.kdtree import KDTree
+    finally:
+        del os.environ["GOMP_SPINCOUNT"]
+    return KDTree
 
 
 def knn_many(clouds, queries, ks, distances: bool = False) -> list:

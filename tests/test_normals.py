@@ -324,3 +324,25 @@ def test_nearest_refuses_more_neighbours_than_points():
         nearest(points, points, 5)
     dist, hood = nearest(points, points, 3)
     assert hood.dtype == np.intp and hood.max() < 3 and (hood[:, 0] == np.arange(3)).all()
+
+
+@pytest.mark.parametrize("own", [None, "123"])
+def test_pykdtree_is_loaded_without_changing_the_environment(own):
+    """``normals._pykdtree`` loads pykdtree's private OpenMP runtime with its spin count
+    set only while it loads: the process's environment is the same after, and a spin
+    count the user set is theirs (read in a fresh process: the runtime loads once)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT",
+                                                               "OMP_WAIT_POLICY")}
+    if own is not None:
+        env["GOMP_SPINCOUNT"] = own
+    code = ("import os, numpy as np; from jaxfit import normals; "
+            "hood = normals.nearest(np.eye(3), np.eye(3), 2)[1]; "
+            "print(os.environ.get('GOMP_SPINCOUNT'), hood[:, 0].tolist())")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120, check=True).stdout.split()
+    assert out[0] == str(own)
+    assert out[1:] == ["[0,", "1,", "2]"]
