@@ -680,3 +680,37 @@ def test_threads_making_a_stored_programs_first_call_at_once_agree(tmp_path, mon
     for out in found:
         np.testing.assert_array_equal(out, 3 * x * x)
     assert len(traced) == 1 and not again.unproven
+
+
+def test_the_collector_is_paused_only_while_programs_are_made():
+    """``_cache.gc_paused``: the cyclic collector is off inside (nested blocks and other
+    threads' blocks share one pause) and back as it was after the last one ends; a
+    collector the user turned off stays off."""
+    import gc
+
+    from jaxfit import _cache
+
+    assert gc.isenabled()
+    done = threading.Event()
+    with _cache.gc_paused():
+        assert not gc.isenabled()
+
+        def other():
+            with _cache.gc_paused():
+                done.wait(10)
+
+        thread = threading.Thread(target=other)
+        thread.start()
+        with _cache.gc_paused():
+            assert not gc.isenabled()
+    assert not gc.isenabled()  # (the other thread's block still runs)
+    done.set()
+    thread.join()
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with _cache.gc_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
