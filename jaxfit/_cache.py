@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import gc
 import hashlib
 import hmac
 import inspect
@@ -67,6 +66,8 @@ from pathlib import Path
 
 import jax
 import numpy as np
+
+from ._gc import paused
 
 #: Environment variable that turns the cache off when set to one of ``OFF_VALUES``.
 ENV_SWITCH = "JAXFIT_CACHE"
@@ -348,7 +349,7 @@ class Stored:
             with self.first_calls.setdefault(signature, threading.Lock()):
                 if signature in self.ready:  # another thread's first call came first
                     return self(*args, **kwargs)
-                with gc_paused():
+                with paused():  # (tracing's objects: no full collections meanwhile)
                     out = self._first_call(signature, self.kernels.get(signature), leaves,
                                            tree, args, kwargs, dyn_args, dyn_kwargs)
                 self.ready.add(signature)
@@ -465,32 +466,6 @@ def _run_after_export():
 
 
 _lapack_skip = threading.local()  # .depth: how many ``without_lapack`` blocks this thread is in
-
-
-_gc_pause = {"holders": 0, "was_enabled": False}
-_gc_lock = threading.Lock()
-
-
-@contextlib.contextmanager
-def gc_paused():
-    """Within it, Python's cyclic garbage collector does not run (as it was before once
-    the last such block, in any thread, has ended). Why: a first call traces and lowers
-    its program, whose many surviving objects set off full collections of every object
-    the process holds while the GIL is held (a cold first fit's critical path:
-    0.03-0.1 s of its ~1 s; a cold ``jaxfit demo``: 0.3-0.4 s; docs/engine.md,
-    "Session 26"). The cycles made meanwhile are collected after."""
-    with _gc_lock:
-        if _gc_pause["holders"] == 0:
-            _gc_pause["was_enabled"] = gc.isenabled()
-            gc.disable()
-        _gc_pause["holders"] += 1
-    try:
-        yield
-    finally:
-        with _gc_lock:
-            _gc_pause["holders"] -= 1
-            if _gc_pause["holders"] == 0 and _gc_pause["was_enabled"]:
-                gc.enable()
 
 
 @contextlib.contextmanager

@@ -683,25 +683,25 @@ def test_threads_making_a_stored_programs_first_call_at_once_agree(tmp_path, mon
 
 
 def test_the_collector_is_paused_only_while_programs_are_made():
-    """``_cache.gc_paused``: the cyclic collector is off inside (nested blocks and other
+    """``_gc.paused``: the cyclic collector is off inside (nested blocks and other
     threads' blocks share one pause) and back as it was after the last one ends; a
     collector the user turned off stays off."""
     import gc
 
-    from jaxfit import _cache
+    from jaxfit import _gc
 
     assert gc.isenabled()
     done = threading.Event()
-    with _cache.gc_paused():
+    with _gc.paused():
         assert not gc.isenabled()
 
         def other():
-            with _cache.gc_paused():
+            with _gc.paused():
                 done.wait(10)
 
         thread = threading.Thread(target=other)
         thread.start()
-        with _cache.gc_paused():
+        with _gc.paused():
             assert not gc.isenabled()
     assert not gc.isenabled()  # (the other thread's block still runs)
     done.set()
@@ -709,7 +709,7 @@ def test_the_collector_is_paused_only_while_programs_are_made():
     assert gc.isenabled()
     gc.disable()
     try:
-        with _cache.gc_paused():
+        with _gc.paused():
             pass
         assert not gc.isenabled()
     finally:
