@@ -26,6 +26,7 @@ import concurrent.futures
 import functools
 import numbers
 import os
+import threading
 
 import numpy as np
 
@@ -96,6 +97,9 @@ def nearest(points: np.ndarray, queries: np.ndarray, k: int):
 KDTREE_SPIN = "0"
 
 
+_pykdtree_lock = threading.Lock()  # (knn_many's threads may make the first call at once)
+
+
 @functools.cache
 def _pykdtree():
     """pykdtree's KDTree class. Its wheels bundle a private copy of GNU OpenMP, which
@@ -109,19 +113,20 @@ def _pykdtree():
     import sys
     from pathlib import Path
 
-    spec = importlib.util.find_spec("pykdtree")
-    private = spec is not None and spec.origin is not None and any(
-        (Path(spec.origin).parent.parent / "pykdtree.libs").glob("libgomp*"))
-    if ("pykdtree.kdtree" in sys.modules or not private
-            or {"GOMP_SPINCOUNT", "OMP_WAIT_POLICY"} & set(os.environ)):
-        from pykdtree.kdtree import KDTree
+    with _pykdtree_lock:
+        spec = importlib.util.find_spec("pykdtree")
+        private = spec is not None and spec.origin is not None and any(
+            (Path(spec.origin).parent.parent / "pykdtree.libs").glob("libgomp*"))
+        if ("pykdtree.kdtree" in sys.modules or not private
+                or {"GOMP_SPINCOUNT", "OMP_WAIT_POLICY"} & set(os.environ)):
+            from pykdtree.kdtree import KDTree
+            return KDTree
+        os.environ["GOMP_SPINCOUNT"] = KDTREE_SPIN
+        try:
+            from pykdtree.kdtree import KDTree
+        finally:
+            os.environ.pop("GOMP_SPINCOUNT", None)
         return KDTree
-    os.environ["GOMP_SPINCOUNT"] = KDTREE_SPIN
-    try:
-        from pykdtree.kdtree import KDTree
-    finally:
-        del os.environ["GOMP_SPINCOUNT"]
-    return KDTree
 
 
 def knn_many(clouds, queries, ks, distances: bool = False) -> list:
