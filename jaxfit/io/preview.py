@@ -52,16 +52,14 @@ def surface_patch(mesh, points, reach: float):
         near = np.flatnonzero(gap <= reach + widths)
         if not len(near):
             return None
-        mesh = mesh.submesh([near], append=True)
         if widths[near].max() <= 1.5 * reach or split == PATCH_SPLITS \
                 or 4 * len(near) > PATCH_FACES:
             break
-        mesh = mesh.subdivide()
+        mesh = mesh.submesh([near], append=True).subdivide()
     # Its centre within reach, no corner beyond twice that: a sliver (a cone's faces at
     # its apex) that split too few times is left out rather than drawn as a spike.
-    corners = mesh.triangles
-    far = tree.query(corners.reshape(-1, 3))[0].reshape(-1, 3).max(axis=1)
-    keep = np.flatnonzero((tree.query(corners.mean(axis=1))[0] <= reach) & (far <= 2 * reach))
+    far = tree.query(corners[near].reshape(-1, 3))[0].reshape(-1, 3).max(axis=1)
+    keep = near[(gap[near] <= reach) & (far <= 2 * reach)]
     return mesh.submesh([keep], append=True) if len(keep) else None
 
 
