@@ -71,21 +71,23 @@ class LocalOptimizer:
         other arguments with a leading (C,) axis, normals None or (C, B, 3)), ``group``
         clouds side by side (a divisor of C): (theta (C, S, P), cost (C, S), count (C, S)).
         A while_loop under vmap runs until its slowest member stops, so small groups keep
-        one slow cloud from holding all the others. A single start (the sphere's) is
-        refined without a ``vmap`` of the while_loop to trace; several keep theirs, the
-        same vector arithmetic as ``compacted``'s (a map over them summed the box's and
-        the plane's refinements in another order: docs/engine.md, "Session 14")."""
+        one slow cloud from holding all the others. The starts of a group's clouds are
+        one ``vmap`` (each start's cloud arrays gathered by index; one cloud's shared):
+        a vmap of the starts inside a vmap of the clouds had traced every while_loop
+        through two batching levels (a first fit of two parts: 2.5x the refinement's
+        trace of one)."""
+        count, starts = thetas.shape[:2]
+        cloud = (points, n_valid, threshold, bounds, normals)
 
-        def one(theta, p, n, t, b, nrm):
-            return self.refine(cls, theta, p, n, t, b, nrm, n_chunks, rows, scorer)
+        def one(args):
+            theta, c = args
+            own = jax.tree.map(lambda a: a[0] if count == 1 else a[c], cloud)
+            return self.refine(cls, theta, *own, n_chunks, rows, scorer)
 
-        def starts(theta, *rest):
-            if theta.shape[0] == 1:
-                return map_leading(lambda t: one(t, *rest), theta)
-            return jax.vmap(one, in_axes=(0, None, None, None, None, None))(theta, *rest)
-
-        return map_leading(lambda a: starts(*a),
-                           (thetas, points, n_valid, threshold, bounds, normals), group)
+        flat = (thetas.reshape(count * starts, thetas.shape[2]),
+                jnp.repeat(jnp.arange(count), starts))
+        out = map_leading(one, flat, group * starts)
+        return jax.tree.map(lambda a: a.reshape(count, starts, *a.shape[1:]), out)
 
 
 @dataclasses.dataclass(frozen=True)
