@@ -64,7 +64,7 @@ from .io.inputs import converted
 from .normals import distinct_inverse, distinct_rows, kd_tree, pair_normals
 from .shapes import Model, trimesh_scene
 from .shapes._base import short
-from .shapes._geometry import column_bounds
+from .shapes._geometry import column_bounds, median
 
 #: Candidate shapes, simplest first (the order breaks near-ties in support).
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")
@@ -440,7 +440,7 @@ class RadiusGraph:
             np.minimum.at(nearest, pairs[:, 0], length)
             np.minimum.at(nearest, pairs[:, 1], length)
             known = np.count_nonzero(np.isfinite(nearest)) * 2 > m + 1  # (the middle two)
-            spacing = float(np.median(nearest)) if known else _spacing(tree, distinct)
+            spacing = float(median(nearest)) if known else _spacing(tree, distinct)
             radius = connect * spacing
             if known and radius <= reach:
                 pairs = pairs.take(np.flatnonzero(length <= radius), axis=0)
