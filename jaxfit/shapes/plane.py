@@ -84,7 +84,7 @@ class Plane(Model):
         # plane's own 2-D coordinates: two 1-D medians, not a gather of (M, 3) rows and
         # three (docs/shapes.md).
         in_plane = g.frame(normal)[:, :2]  # (3, 2)
-        inside = points[inliers]
+        inside = points.compress(inliers, axis=0)  # (as points[inliers], ~4x faster)
         u, v = (_project(inside, in_plane[:, i]) for i in range(2))
         mu, mv = g.median(u), g.median(v)
         spread = _length_2d(u - mu, v - mv)
@@ -109,7 +109,7 @@ class Plane(Model):
         in_plane = g.frames(normals)[:, :, :2]  # (C, 3, 2)
         counts = np.add.reduceat(inliers, np.cumsum([0] + [len(p) for p in points[:-1]]),
                                  dtype=np.int64)
-        inside = np.concatenate(points)[inliers]  # (M, 3)
+        inside = np.concatenate(points).compress(inliers, axis=0)  # (M, 3)
         u, v = (_project(inside, np.repeat(in_plane[:, :, i], counts, axis=0).T)
                 for i in range(2))
         mu, mv = g.segment_medians(u, counts), g.segment_medians(v, counts)
