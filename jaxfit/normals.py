@@ -278,7 +278,7 @@ def _radii(points, k: int, queries, origin) -> tuple[float, np.ndarray, np.ndarr
     every sampled point and query coincide."""
     rng = np.random.default_rng(0)
     picked = np.sort(rng.integers(0, len(points), max(k, len(points) // SUBSAMPLE)))
-    sub = points[picked[np.r_[True, picked[1:] != picked[:-1]]]]  # (distinct: a bound)
+    sub = points.take(picked[np.r_[True, picked[1:] != picked[:-1]]], axis=0)  # (distinct)
     rank = min(SUBSAMPLE_RANK, len(sub))
     ranks = [max(1, rank // 2), rank, min(k, len(sub))]
     half, far, bounds = kd_tree(sub).query(queries, k=ranks)[0].T
@@ -308,10 +308,10 @@ def distinct_rows(points: np.ndarray) -> np.ndarray:
     """The distinct rows of points (N, 3) in lexicographic order, as
     ``numpy.unique(points, axis=0)`` (-0.0 equal to 0.0), by a lexsort of the
     columns, several times faster."""
-    ordered = points[np.lexsort(points.T[::-1])]
+    ordered = points.take(np.lexsort(points.T[::-1]), axis=0)
     keep = np.ones(len(ordered), bool)
     keep[1:] = _differs_from_previous(ordered)
-    return ordered[keep]
+    return ordered.compress(keep, axis=0)
 
 
 def distinct_inverse(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -320,15 +320,15 @@ def distinct_inverse(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return_inverse=True)`` (one lexsort: about twice as fast; where the first
     coordinates are all distinct, the common case, one argsort of them is the order)."""
     order = np.argsort(points[:, 0], kind="stable")
-    ordered = points[order]
+    ordered = points.take(order, axis=0)
     if np.any(ordered[1:, 0] == ordered[:-1, 0]):  # (ties: the other columns decide)
         order = np.lexsort(points.T[::-1])
-        ordered = points[order]
+        ordered = points.take(order, axis=0)
     keep = np.ones(len(ordered), bool)
     keep[1:] = _differs_from_previous(ordered)
     inverse = np.empty(len(points), np.int64)
     inverse[order] = np.cumsum(keep) - 1
-    return ordered[keep], inverse
+    return ordered.compress(keep, axis=0), inverse
 
 
 #: ``pair_normals`` takes a point's normal from its k nearest neighbours instead when
@@ -367,8 +367,8 @@ def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None,
         # (the sparse points' neighbours, a KD-tree query that releases the GIL, found
         # meanwhile: ~6 ms for the 10 % outliers of a 23k-point scene)
         hood = pool.submit(
-            lambda: knn(points, k, points[sparse]) if tree is None
-            else tree.query(points[sparse], k=k)[1]) if len(sparse) else None
+            lambda: knn(points, k, points.take(sparse, axis=0)) if tree is None
+            else tree.query(points.take(sparse, axis=0), k=k)[1]) if len(sparse) else None
         cov = None if neighbour_sums is None else _product_scatter(points, neighbour_sums,
                                                                    count)
         if cov is None:
@@ -432,7 +432,8 @@ def _neighbours(points, near, queries, k: int, distinct: bool, workers: int):
     """(distances (M, k), indices (M, k) into pool, pool) of the k nearest of
     pool = points[near] (with ``distinct``: its distinct points) to each query (M, 3);
     distances inf where pool has fewer than k points."""
-    pool = distinct_rows(points[near]) if distinct else points[near]
+    pool = points.take(near, axis=0)
+    pool = distinct_rows(pool) if distinct else pool
     if len(pool) < k:
         return np.full((len(queries), k), np.inf), np.zeros((len(queries), k), np.int64), pool
     dist, hood = kd_tree(pool).query(queries, k=k, workers=workers)
@@ -466,8 +467,8 @@ def knn_near(points, k: int, queries, workers: int = -1, distinct: bool = False)
         if len(harvest) * 2 > len(points):
             return None
         for reach in (1.0, HARVEST):
-            ahead, r = queries[pending], reach * radii[pending]
-            near = harvest[near_mask(points[harvest], ahead, r, origin, base)]
+            ahead, r = queries.take(pending, axis=0), reach * radii[pending]
+            near = harvest[near_mask(points.take(harvest, axis=0), ahead, r, origin, base)]
             found, into, pool = _neighbours(points, near, ahead, k, distinct, workers)
             ok = found[:, -1] <= r * CERTIFY
             dist[pending[ok]] = found[ok]
@@ -491,7 +492,7 @@ def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     neighbourhood points[neighbours] (M, k, 3)."""
     out = np.empty((len(neighbours), 3), points.dtype)
     for start in range(0, len(neighbours), BLOCK):
-        hood = points[neighbours[start:start + BLOCK]]  # (B, k, 3)
+        hood = points.take(neighbours[start:start + BLOCK], axis=0)  # (B, k, 3)
         out[start:start + BLOCK] = smallest_eigenvectors(_covariances(hood))
     return out
 

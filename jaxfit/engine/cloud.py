@@ -118,7 +118,8 @@ class Cloud:
         if self.pool is None:
             return self.unit, self.normals, len(self.points)
         rest = np.setdiff1d(np.arange(len(self.points)), self.pool, assume_unique=True)
-        return self.unit[np.concatenate([self.pool, rest])], self.normals, len(self.pool)
+        return (self.unit.take(np.concatenate([self.pool, rest]), axis=0), self.normals,
+                len(self.pool))
 
 
 def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, key, index,
@@ -225,7 +226,8 @@ def estimate_normals(clouds: list[Cloud]):
     if todo:
         from ..normals import normals_at_many
 
-        sources = [c.points if c.support is None else c.points[c.support] for c in todo]
+        sources = [c.points if c.support is None else c.points.take(c.support, axis=0)
+                   for c in todo]
         at = [c.wanted if c.support is None else np.searchsorted(c.support, c.wanted)
               for c in todo]
         found = normals_at_many(sources, at, [min(NORMAL_NEIGHBOURS, len(s)) for s in sources])
