@@ -220,18 +220,31 @@ def row_norms(v):
 
 
 def axial_radial(points, origin, axis):
-    """Axial coordinate t (N,) and radial distance rho (N,) of points (N, 3) about a line."""
-    v = np.asarray(points, dtype=np.float64) - origin
+    """Axial coordinate t (N,) and radial distance rho (N,) of points (N, 3) about a line.
+    Column by column: the same bits as ``v = points - origin``, ``t = v @ axis`` and
+    ``row_norms(v - t[:, None] * axis)``, whose (N, 3) broadcasts run NumPy's inner loop
+    over 3 values (1e5 points: 2.6 ms for the radial part alone, 0.2 ms in columns)."""
+    v = _offsets(points, origin)
     t = v @ axis
-    rho = row_norms(v - t[:, None] * axis)
-    return t, rho
+    w0, w1, w2 = (v[:, j] - t * axis[j] for j in range(3))
+    return t, np.sqrt(w0 ** 2 + w1 ** 2 + w2 ** 2)
+
+
+def _offsets(points, origin):
+    """points (N, 3) - origin (3,) as float64, in points' memory order (the layout
+    ``v @ axis`` sums by), written column by column (see ``axial_radial``)."""
+    points = np.asarray(points, dtype=np.float64)
+    v = np.empty_like(points)
+    for j in range(3):
+        np.subtract(points[:, j], origin[j], out=v[:, j])
+    return v
 
 
 def axial(points, origin, axis):
     """``axial_radial``'s t (N,) alone, the same bits (a bounded fit's extent along its
     axis needs no radial distances: at 1e5 inliers they were ~2/3 of a cylinder's
     ``from_theta``)."""
-    return (np.asarray(points, dtype=np.float64) - origin) @ axis
+    return _offsets(points, origin) @ axis
 
 
 def segment_distance_2d(px, py, ax, ay, bx, by):
