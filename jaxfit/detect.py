@@ -64,7 +64,7 @@ from .io.inputs import converted
 from .normals import distinct_inverse, distinct_rows, kd_tree, pair_normals
 from .shapes import Model, trimesh_scene
 from .shapes._base import short
-from .shapes._geometry import column_bounds, median
+from .shapes._geometry import column_bounds, median, offsets
 
 #: Candidate shapes, simplest first (the order breaks near-ties in support).
 DEFAULT_SHAPES = ("plane", "sphere", "cylinder", "cone")
@@ -347,7 +347,7 @@ def pair_bound(points: np.ndarray, radius: float) -> float:
     once, the products of their counts. On the scenes' surfaces about 3 times the true
     count, so that a cloud well within ``PAIR_BUDGET`` needs no exact count
     (``count_neighbors`` cost twice the listing)."""
-    cells = np.floor((points - column_bounds(points)[0]) / radius).astype(np.int64) + 1
+    cells = np.floor(offsets(points, column_bounds(points)[0]) / radius).astype(np.int64) + 1
     dims = column_bounds(cells)[1] + 2
     size = float(np.prod(dims.astype(np.float64)))
     if size >= 2.0 ** 62:
@@ -833,10 +833,11 @@ def _polished(ctx: _Context, model: Model, taken, cost, group, rng):
     points = ctx.cloud.take(_fit_points(taken, POLISH_POINTS, rng), axis=0)
     lo, hi = column_bounds(points)
     center = 0.5 * (lo + hi)
-    scale = float(np.sqrt(((points - center) ** 2).sum(axis=1).max()))
+    unit = offsets(points, center)
+    scale = float(np.sqrt((unit ** 2).sum(axis=1).max()))
     if not scale > 0:
         return model, taken, cost
-    unit = (points - center) / scale
+    unit /= scale
     threshold = ctx.threshold / scale
     cls = type(model)
     theta, new_cost, start = final_refit(cls, model.rescaled(1.0 / scale, -center / scale)
@@ -846,7 +847,7 @@ def _polished(ctx: _Context, model: Model, taken, cost, group, rng):
     # Bounded by all the group's points near it, as the fits bound their models by the
     # points they saw (its support alone leaves out an edge whose normals are blurred:
     # a small cone's base, which then went to the floor).
-    unit = (ctx.cloud.take(group, axis=0) - center) / scale
+    unit = offsets(ctx.cloud.take(group, axis=0), center) / scale
     inliers = np.abs(cls.theta_residual(theta, tuple(unit.T), np)) < threshold
     if not inliers.any():
         return model, taken, cost

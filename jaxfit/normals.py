@@ -32,7 +32,7 @@ import numpy as np
 
 from . import _checks
 from .io.inputs import converted
-from .shapes._geometry import column_bounds
+from .shapes._geometry import column_bounds, offsets
 
 #: Orientation methods: Hoppe's propagation, each normal on its own, or no orientation.
 ORIENTATIONS = ("mst", "direct", None)
@@ -412,7 +412,7 @@ def _product_scatter(points, neighbour_sums, count):
     neighbourhood of at least ``PAIR_LEAST`` points, the rounding of those sums (bound
     ~4 eps x count x the largest squared distance from the centre) exceeds
     ``PRODUCT_ROUNDING`` times its scatter's trace."""
-    centred = points - 0.5 * sum(column_bounds(points))
+    centred = offsets(points, 0.5 * sum(column_bounds(points)))
     x, y, z = centred.T
     terms = np.column_stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])
     sums = neighbour_sums(terms) + terms  # (itself included)

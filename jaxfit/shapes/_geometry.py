@@ -224,13 +224,13 @@ def axial_radial(points, origin, axis):
     Column by column: the same bits as ``v = points - origin``, ``t = v @ axis`` and
     ``row_norms(v - t[:, None] * axis)``, whose (N, 3) broadcasts run NumPy's inner loop
     over 3 values (1e5 points: 2.6 ms for the radial part alone, 0.2 ms in columns)."""
-    v = _offsets(points, origin)
+    v = offsets(points, origin)
     t = v @ axis
     w0, w1, w2 = (v[:, j] - t * axis[j] for j in range(3))
     return t, np.sqrt(w0 ** 2 + w1 ** 2 + w2 ** 2)
 
 
-def _offsets(points, origin):
+def offsets(points, origin):
     """points (N, 3) - origin (3,) as float64, in points' memory order (the layout
     ``v @ axis`` sums by), written column by column (see ``axial_radial``)."""
     points = np.asarray(points, dtype=np.float64)
@@ -244,7 +244,7 @@ def axial(points, origin, axis):
     """``axial_radial``'s t (N,) alone, the same bits (a bounded fit's extent along its
     axis needs no radial distances: at 1e5 inliers they were ~2/3 of a cylinder's
     ``from_theta``)."""
-    return _offsets(points, origin) @ axis
+    return offsets(points, origin) @ axis
 
 
 def segment_distance_2d(px, py, ax, ay, bx, by):
