@@ -46,6 +46,15 @@ def test_prepare_many_is_prepare_bit_for_bit(rng, dtype):
     assert all(_same(a, b) for a, b in zip(many, one, strict=True))
 
 
+def test_prepare_many_default_thresholds_are_default_threshold_bit_for_bit(rng):
+    # (computed for all clouds at once by stacked matmul, which must sum as the dot of
+    # default_threshold does: checked over many extents, as that depends on the BLAS)
+    clouds = [c[:4] * rng.choice([1e-3, 1.0, 1e3]) for c in _clouds(rng, [4] * 3000)]
+    many = prepare_many(clouds, Sphere, [None] * len(clouds), FitOptions().check(Sphere).bounds)
+    assert [c.threshold for c in many] == [default_threshold(c.max(axis=0) - c.min(axis=0))
+                                           for c in clouds]
+
+
 def test_prepare_many_in_halves_is_prepare_bit_for_bit(rng, monkeypatch):
     # A call of at least SPLIT_POINTS points is prepared in two halves side by side
     # (lowered here, and two cores pretended, so that these few clouds take that path).

@@ -201,9 +201,12 @@ def _prepared(clouds, thresholds, bounds: Bounds) -> list[Cloud] | None:
     scale = np.maximum.reduceat(np.sqrt(norms, out=norms), starts)
     if np.any((extent > 0) & (extent < _checks.MIN_EXTENT)) or not np.all(scale > 0):
         return None
+    sides = hi - lo  # (``default_threshold`` of each: stacked matmul is its dot, bit for bit)
+    defaults = (DEFAULT_THRESHOLD_FRACTION
+                * np.sqrt(np.matmul(sides[:, None, :], sides[:, :, None])[:, 0, 0])).tolist()
     try:
-        limits = [default_threshold(hi[i] - lo[i]) if t is None
-                  else _checks.positive(t, "threshold") for i, t in enumerate(thresholds)]
+        limits = [defaults[i] if t is None else _checks.positive(t, "threshold")
+                  for i, t in enumerate(thresholds)]
     except ValueError:
         return None
     columns /= np.repeat(scale, sizes)
