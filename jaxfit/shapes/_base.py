@@ -30,7 +30,8 @@ needs as class-level functions:
   geometric least-squares fit (points (S, 3), weights (S,)) in closed form; refinement
   uses it instead of Levenberg-Marquardt steps.
 - ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
-  height / extents / faces fixed from the inliers after the loop (NumPy, float64).
+  height / extents / faces fixed from the inliers after the loop (NumPy, float64;
+  points an (N, 3) ndarray, inliers an (N,) bool mask).
 - ``from_theta_many(thetas, points, inliers, thresholds[, scales, shifts])`` (optional:
   the default calls ``from_theta`` and ``rescaled`` per cloud) and ``pointwise_theta``
   (default False): ``fit_batch``'s results for many clouds in array code
