@@ -30,6 +30,11 @@ CPU_OPTIONS = {
     "xla_cpu_enable_fast_min_max": True,
     **LOOP_EMITTERS,
 }
+#: The kernel's options where its refinement compiles beside it (a fit with LO): code
+#: generation not split over the cores, which the two compiles already keep busy. A
+#: kernel compiled alone (``polish``, detect's candidates) keeps the split, which lets its
+#: one compile use both cores (docs/engine.md, "Session 27").
+BESIDE_OPTIONS = {**CPU_OPTIONS, "xla_cpu_parallel_codegen_split_count": 1}
 #: The refinement's XLA CPU options.
 REFINE_OPTIONS = LOOP_EMITTERS
 #: On the CPU the scoring kernel splits H hypotheses into this many independent loops

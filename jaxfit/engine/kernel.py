@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from ..shapes import Model
-from .backend import REFINE_OPTIONS, jit_tuned, map_leading
+from .backend import BESIDE_OPTIONS, REFINE_OPTIONS, jit_tuned, map_leading
 from .refine import DEFAULT_REFINER, LocalOptimizer
 from .sampling import DEFAULT_SAMPLER, Sampler
 from .scoring import (
@@ -143,9 +143,16 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
                              bounds), group(points.shape[0], CHUNK * batch_size))
 
 
-batch_best_many = jit_tuned(_batch_best_many,
-                            static_argnames=("cls", "batch_size", "estimator", "gated",
-                                             *_STAGES))
+_KERNEL_ARGS = ("cls", "batch_size", "estimator", "gated", *_STAGES)
+_batch_best_alone = jit_tuned(_batch_best_many, _KERNEL_ARGS)
+_batch_best_beside = jit_tuned(_batch_best_many, _KERNEL_ARGS, BESIDE_OPTIONS)
+
+
+def batch_best_many(*args, beside_refinement: bool = False, **kwargs):
+    """``_batch_best_many``, jitted; ``beside_refinement``: for a search whose refinement
+    program compiles beside the kernel's (``BESIDE_OPTIONS``), the same results."""
+    kernel = _batch_best_beside if beside_refinement else _batch_best_alone
+    return kernel(*args, **kwargs)
 
 
 def group(clouds: int, elements: int) -> int:

@@ -247,7 +247,7 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
             theta, cost, found, _ = batch_best_many(
                 cls, batch_size, est.name, a["points"], a["normals"], a["n"],
                 a["n_sample"], a["keys"], a["threshold"], a["bounds"], batch, gated,
-                options.sampler, options.scorer)
+                options.sampler, options.scorer, beside_refinement=options.refine)
         where = np.arange(rows_count) if searching is None else searching  # slot of each row
         batch += 1
         drawn[active] = batch * batch_size
