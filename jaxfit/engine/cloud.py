@@ -65,14 +65,20 @@ def unit_frame(points: np.ndarray):
     center = 0.5 * (lo + hi)
     _checks.spanning(lo, hi)
     columns -= center[:, None]
-    norms = columns[0] ** 2  # (``row_norms``, column by column)
-    norms += columns[1] ** 2
-    norms += columns[2] ** 2
-    scale = float(np.sqrt(norms.max()))
+    scale = float(np.sqrt(_square_norms(columns).max()))
     if not scale > 0:
         raise _checks.FitError("all points coincide: there is no shape to fit")
     columns /= scale
     return lo, hi, center, scale, np.ascontiguousarray(columns.T)
+
+
+def _square_norms(columns: np.ndarray) -> np.ndarray:
+    """The squared norms (N,) of the points in columns (3, N), summed as ``row_norms``
+    sums its rows (x^2 + y^2, then + z^2)."""
+    norms = columns[0] ** 2
+    norms += columns[1] ** 2
+    norms += columns[2] ** 2
+    return norms
 
 
 def padded(rows: np.ndarray, dtype, size: int | None = None):
@@ -94,6 +100,7 @@ class Cloud:
     pool: np.ndarray | None  # (M,) indices samples are drawn from (None: all points)
     center: np.ndarray
     scale: float
+    unit: np.ndarray  # (N, 3) float64: (points - center) / scale, the frame the kernels see
     threshold: float  # in the cloud's units
     bounds: Bounds  # the user's bounds, in the cloud's units
     wanted: np.ndarray | None = None  # indices whose normals are still to be estimated
@@ -103,10 +110,6 @@ class Cloud:
     @functools.cached_property
     def gated(self) -> bool:
         return self.bounds.gated
-
-    @functools.cached_property
-    def unit(self):
-        return (self.points - self.center) / self.scale
 
     def unit_bounds(self) -> Bounds:
         """The bounds in the normalised frame."""
@@ -149,9 +152,7 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
                 taken[rng.integers(0, len(cloud), NORMAL_SUPPORT)] = True
                 support = np.flatnonzero(taken)
         wanted = np.arange(len(cloud)) if pool is None else pool
-    prepared = Cloud(cloud, normals, pool, center, scale, threshold, bounds, wanted, support)
-    prepared.__dict__["unit"] = unit  # (the cached property, made)
-    return prepared
+    return Cloud(cloud, normals, pool, center, scale, unit, threshold, bounds, wanted, support)
 
 
 def prepare_many(clouds, cls: type[Model], thresholds, bounds: Bounds) -> list[Cloud] | None:
@@ -195,9 +196,7 @@ def _prepared(clouds, thresholds, bounds: Bounds) -> list[Cloud] | None:
     extent = (hi - lo).max(axis=1)
     center = 0.5 * (lo + hi)
     columns -= np.repeat(center.T, sizes, axis=1)  # points - center
-    norms = columns[0] ** 2  # (``row_norms``, column by column)
-    norms += columns[1] ** 2
-    norms += columns[2] ** 2
+    norms = _square_norms(columns)
     scale = np.maximum.reduceat(np.sqrt(norms, out=norms), starts)
     if np.any((extent > 0) & (extent < _checks.MIN_EXTENT)) or not np.all(scale > 0):
         return None
@@ -215,10 +214,8 @@ def _prepared(clouds, thresholds, bounds: Bounds) -> list[Cloud] | None:
     unit = np.ascontiguousarray(columns.T)
     out = []
     for i, (start, n) in enumerate(zip(starts.tolist(), sizes.tolist(), strict=True)):
-        cloud = Cloud(every[start:start + n], None, None, center[i], float(scale[i]),
-                      limits[i], bounds)
-        cloud.__dict__["unit"] = unit[start:start + n]  # (the cached property, made)
-        out.append(cloud)
+        out.append(Cloud(every[start:start + n], None, None, center[i], float(scale[i]),
+                         unit[start:start + n], limits[i], bounds))
     return out
 
 
