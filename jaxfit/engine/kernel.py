@@ -150,7 +150,8 @@ _batch_best_beside = jit_tuned(_batch_best_many, _KERNEL_ARGS, BESIDE_OPTIONS)
 
 def batch_best_many(*args, beside_refinement: bool = False, **kwargs):
     """``_batch_best_many``, jitted; ``beside_refinement``: for a search whose refinement
-    program compiles beside the kernel's (``BESIDE_OPTIONS``), the same results."""
+    program compiles beside the kernel's (``BESIDE_OPTIONS``: the same program, its code
+    generated unsplit, which can round a float32 result differently)."""
     kernel = _batch_best_beside if beside_refinement else _batch_best_alone
     return kernel(*args, **kwargs)
 
