@@ -40,9 +40,9 @@ def surface_patch(mesh, points, reach: float):
     ``reach`` or the patch holds ``PATCH_FACES``. None where no face is that near. Why:
     a detection explains a patch of its primitive, and a free-form scan's spheres and
     cones, drawn whole, are many times the scan's size and hide it."""
-    from scipy.spatial import cKDTree
+    from ..normals import kd_tree
 
-    tree = cKDTree(np.asarray(points, np.float64))
+    tree = kd_tree(np.asarray(points, np.float64))
     for split in range(PATCH_SPLITS + 1):
         corners = mesh.triangles  # (F, 3, 3)
         centres = corners.mean(axis=1)
