@@ -230,6 +230,12 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
             return every
         return jax.tree.map(lambda a: put(a[slots_of]), host)
 
+    def lo(theta, cost, arrays):  # LO of the kernel's best (theta, cost) on those slots
+        return refine_many(cls, theta, cost, arrays["points"], arrays["n"],
+                           arrays["threshold"], arrays["bounds"],
+                           arrays["normals"] if gated else None, lo_rows(n_max),
+                           options.refiner, options.scorer)
+
     starts = (cls.lo_starts,) if options.polish else ()  # (the kept starts of a best batch)
     best_theta = np.full((rows_count,) + starts + (cls.num_params,), np.nan)
     best_cost, best_raw = np.full(rows_count, np.inf), np.full(rows_count, np.inf)
@@ -249,6 +255,16 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
                 a["n_sample"], a["keys"], a["threshold"], a["bounds"], batch, gated,
                 options.sampler, options.scorer, beside_refinement=options.refine)
         where = np.arange(rows_count) if searching is None else searching  # slot of each row
+        early = None
+        if options.refine and batch == 0 and searching is None:
+            # The first batch improves every slot whose kernel found a valid hypothesis:
+            # its refinement is dispatched before the kernel's costs are read, so that it
+            # runs straight after the kernel (one wait on the device, not two); it is
+            # dropped below where the slots to refine turn out otherwise.
+            if ahead is not None:  # the first refinement's program, compiled meanwhile
+                ahead.join()
+                ahead = None
+            early = lo(theta, cost, a)
         batch += 1
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
@@ -267,10 +283,8 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
                 row[where[::-1]] = np.arange(len(where))[::-1]  # first row of each slot
                 theta, cost = (put(np.asarray(x)[row[polishing]]) for x in (theta, cost))
                 a = on(polishing)
-            theta, cost, found = refine_many(
-                cls, theta, cost, a["points"], a["n"], a["threshold"], a["bounds"],
-                a["normals"] if gated else None, lo_rows(n_max), options.refiner,
-                options.scorer)
+            theta, cost, found = (early if early is not None and polishing is None
+                                  else lo(theta, cost, a))
             where = np.arange(rows_count) if polishing is None else polishing
         else:
             # (indexing on the host: a JAX slice per array cost ~0.2 ms each)
