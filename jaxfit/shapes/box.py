@@ -414,8 +414,8 @@ def _polar_jvp(primals, tangents):
 
 
 def _product3(a, b):
-    """a @ b of (3, 3) matrices as a sum of elementwise products (exact float32 on every
-    backend, where a matrix product may round its inputs)."""
+    """a @ b of (3, 3) matrices as a sum of elementwise products: full float32 on every
+    backend, where a matrix product may round its inputs (a GPU's TF32)."""
     return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
