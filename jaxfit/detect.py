@@ -24,9 +24,9 @@ its cloud g, on at most ``fit_points`` of each group's points) and its support m
 on the whole group. A group can only lose points to a primitive fitted inside it, so the
 groups of a round do not interact. The candidates are fitted without LO-RANSAC
 (``CANDIDATE_OPTIONS``); each group's winner is refitted instead, by a least-squares fit
-on its support (``_polished``). The most complex shape is fitted first, and a simpler
-one's search stops once it would have found any model that could still matter
-(``_capped_options``).
+on its support (``_polished``). Every shape's first batch is dispatched at the start of
+the round; then the most complex shape is finished first, and a simpler one's search
+stops once it would have found any model that could still matter (``_cap``).
 
 Choice per group (deliberately simple): the candidate with the largest support wins; but
 a more complex shape only beats a simpler one (earlier in ``shapes``) when its support is
@@ -59,7 +59,8 @@ import jax
 import numpy as np
 
 from . import _checks
-from .engine import FitOptions, default_threshold, fit_batch
+from .engine import FitOptions, default_threshold
+from .engine.fit import started_batch
 from .io.inputs import converted
 from .normals import distinct_inverse, distinct_rows, kd_tree, pair_normals
 from .shapes import Model, trimesh_scene
@@ -94,7 +95,7 @@ CANDIDATE_OPTIONS = {"refine": False}
 #: of inliers needs 70 for 99 %); the adaptive count had run up to 8 batches on
 #: supports the simpler shape did not fit (a plane on a sphere's points).
 REFIT_HYPOTHESES = 256
-#: A simpler shape's candidates are searched (``_capped_options``) only as long as it
+#: A simpler shape's candidates are searched (``_cap``) only as long as it
 #: takes to find a model explaining this fraction of the largest share of a group's
 #: fitted points that a more complex shape's candidate explains.
 RELEVANT = 0.25
@@ -769,7 +770,7 @@ def _round(ctx: _Context, groups, rnd):
 
     Shape s of S is fitted to every group in the call seeded ``_seed(rnd, s)`` (group g
     its cloud g), on the subsample ``_rng(rnd, g)`` draws; the calls run from the most
-    complex shape down, each simpler one capped by ``_capped_options``. When a more
+    complex shape down, each simpler one capped by ``_cap``. When a more
     complex shape wins, each simpler one whose own candidate had at least
     ``SIMPLER_REACH`` times the winner's support in compatible points is refitted to the
     winner's support (call ``_seed(rnd, S + s)``, subsample ``_rng(rnd, g, S + s)``, at
@@ -782,13 +783,15 @@ def _round(ctx: _Context, groups, rnd):
     count = len(ctx.classes)
     samples = [_fit_points(group, ctx.fit_points, _rng(ctx, rnd, g))
                for g, group in enumerate(groups)]
-    # The most complex shape first: each simpler one's search is then capped where it
-    # could only find models that matter (``_capped_options``).
+    # Every shape's first batch is dispatched at once (it does not depend on the caps),
+    # so the device runs the later shapes' while the host works on the earlier ones.
+    # The most complex shape is finished first: each simpler one's search is then capped
+    # where it could only find models that matter (``_cap``).
+    started = [_candidates(ctx, ctx.classes[s], samples, groups, _seed(ctx, rnd, s),
+                           start=True) for s in range(count)]
     per_shape = [None] * count
     for s in reversed(range(count)):
-        options = _capped_options(ctx, ctx.classes[s], per_shape[s + 1:], samples)
-        per_shape[s] = _candidates(ctx, ctx.classes[s], samples, groups, _seed(ctx, rnd, s),
-                                   options)
+        per_shape[s] = started[s](_cap(ctx, ctx.classes[s], per_shape[s + 1:], samples))
     best = [None] * len(groups)
     wins, bounds = {}, {}
     for g, found in enumerate(zip(*per_shape, strict=True)):
@@ -919,34 +922,34 @@ def _fit_points(group, fit_points, rng):
     return np.sort(rng.choice(group, fit_points, replace=False))
 
 
-def _capped_options(ctx: _Context, cls, later, samples) -> dict:
-    """The fit options of shape cls's candidates, given those of the more complex shapes
-    already fitted (later: one list per shape, one candidate or None per group, fitted
-    to cloud[samples[g]]): ``max_hypotheses`` capped at the count that finds, with the
-    call's confidence, a model with ``RELEVANT`` times the largest share of a group's
-    fitted points any of them explains, in every group (no cap where a group has no
-    such candidate, or the caller set ``max_hypotheses`` or ``options``). A simpler
-    candidate with less can neither win (it needs its support within ``tolerance`` of
-    the winner's) nor be refitted to the winner's support (``SIMPLER_REACH``) unless the
+def _cap(ctx: _Context, cls, later, samples) -> int | None:
+    """The ``max_hypotheses`` of shape cls's candidates, given those of the more complex
+    shapes already fitted (later: one list per shape, one candidate or None per group,
+    fitted to cloud[samples[g]]): the count that finds, with the call's confidence, a
+    model with ``RELEVANT`` times the largest share of a group's fitted points any of
+    them explains, in every group; None (the call's own) where a group has no such
+    candidate, or the caller set ``max_hypotheses`` or ``options``. A simpler candidate
+    with less can neither win (it needs its support within ``tolerance`` of the
+    winner's) nor be refitted to the winner's support (``SIMPLER_REACH``) unless the
     winner's support is that much below its fitted share; the adaptive count had run a
     plane on a cylinder's points (16 % inliers) to 5 batches."""
     from .engine.stopping import required_hypotheses
 
     options = ctx.fit_options
     if not later or "options" in options or "max_hypotheses" in options:
-        return options
+        return None
     confidence = float(options.get("confidence", FitOptions.confidence))  # (checked already)
     sample_size = cls.estimator(options.get("estimator")).sample_size
     needed = 0.0
     for g, sample in enumerate(samples):
         shares = [c[3] / len(sample) for found in later if (c := found[g]) is not None]
         if not shares:
-            return options  # (nothing to compare with: the adaptive count)
+            return None  # (nothing to compare with: the adaptive count)
         needed = max(needed, required_hypotheses(RELEVANT * max(shares), sample_size,
                                                  confidence))
     if not np.isfinite(needed):
-        return options
-    return {**options, "max_hypotheses": int(needed)}
+        return None
+    return int(needed)
 
 
 def _refit_options(fit_options: dict) -> dict:
@@ -957,26 +960,33 @@ def _refit_options(fit_options: dict) -> dict:
     return {**fit_options, "max_hypotheses": REFIT_HYPOTHESES}
 
 
-def _candidates(ctx: _Context, cls, fit_on, groups, seed: int, fit_options=None):
+def _candidates(ctx: _Context, cls, fit_on, groups, seed: int, fit_options=None,
+                start: bool = False):
     """Per group: (model, compatible indices into the cloud, cost, inliers among the
     fitted points) of shape cls fitted to the points cloud[fit_on[g]], its compatible
     points taken from cloud[groups[g]] (``_largest`` of them is its support); None where
-    no model could be fitted. One
-    ``fit_batch`` call (seed ``seed``, ``fit_options``, default the context's) for all
-    groups."""
+    no model could be fitted. One ``fit_batch`` call (seed ``seed``, ``fit_options``,
+    default the context's) for all groups. With ``start``, the call's first batch is
+    dispatched and ``finish(max_hypotheses=None)`` returned, which gives that list
+    (``max_hypotheses``: a lower count than the options', ``_cap``)."""
     out = [None] * len(groups)
     which = [g for g, sample in enumerate(fit_on) if len(sample) >= cls.sample_size]
     if not which:
+        return (lambda max_hypotheses=None: out) if start else out
+    fits = started_batch(
+        [ctx.cloud.take(fit_on[g], axis=0) for g in which], cls,
+        normals=[ctx.normals.take(fit_on[g], axis=0) for g in which],
+        thresholds=ctx.threshold, key=seed, skip_failures=True, start=start,
+        **(ctx.fit_options if fit_options is None else fit_options))
+
+    def finish(max_hypotheses=None):
+        for g, result in zip(which, fits(max_hypotheses), strict=True):
+            if result is not None:
+                out[g] = (result.model, _compatible(ctx, result.model, groups[g]),
+                          result.cost, result.num_inliers)
         return out
-    fits = fit_batch([ctx.cloud.take(fit_on[g], axis=0) for g in which], cls,
-                     normals=[ctx.normals.take(fit_on[g], axis=0) for g in which],
-                     thresholds=ctx.threshold, key=seed, skip_failures=True,
-                     **(ctx.fit_options if fit_options is None else fit_options))
-    for g, result in zip(which, fits, strict=True):
-        if result is not None:
-            out[g] = (result.model, _compatible(ctx, result.model, groups[g]), result.cost,
-                      result.num_inliers)
-    return out
+
+    return finish if start else finish()
 
 
 def _compatible(ctx: _Context, model: Model, group) -> np.ndarray:

@@ -68,8 +68,8 @@ class _Stop(Exception):
 
 
 def test_candidates_skip_lo_unless_the_caller_asks(monkeypatch):
-    """The candidates' fit_batch calls get CANDIDATE_OPTIONS (no LO-RANSAC) under the
-    caller's settings; a FitOptions given whole is passed as it is."""
+    """The candidates' fit_batch calls (``started_batch``) get CANDIDATE_OPTIONS (no
+    LO-RANSAC) under the caller's settings; a FitOptions given whole is passed as it is."""
     import sys
 
     from jaxfit.engine import FitOptions
@@ -81,7 +81,7 @@ def test_candidates_skip_lo_unless_the_caller_asks(monkeypatch):
         seen.append(kwargs)
         raise _Stop
 
-    monkeypatch.setattr(module, "fit_batch", fake)
+    monkeypatch.setattr(module, "started_batch", fake)
     points, _, _ = scene(0, objects=["sphere"], count=300)
     for kwargs in ({}, {"refine": True}, {"options": FitOptions(refine=True)}):
         with pytest.raises(_Stop):
@@ -106,16 +106,16 @@ def test_simpler_candidates_search_only_as_long_as_they_could_matter():
     samples = [np.arange(1000), np.arange(500)]
     later = [[(None, None, 0.0, 900), (None, None, 0.0, 100)],  # cone
              [(None, None, 0.0, 400), (None, None, 0.0, 200)]]  # cylinder
-    capped = module._capped_options(ctx, Plane, later, samples)
+    capped = module._cap(ctx, Plane, later, samples)
     # (group 1's best share, 200 of 500, needs more hypotheses than group 0's 900 of 1000)
     expected = required_hypotheses(module.RELEVANT * 0.4, Plane.sample_size, 0.99)
-    assert capped == {"refine": False, "max_hypotheses": expected} and expected > 256
-    assert module._capped_options(ctx, Plane, [], samples) is ctx.fit_options
+    assert capped == expected and expected > 256
+    assert module._cap(ctx, Plane, [], samples) is None
     later[1][1] = later[0][1] = None  # (group 1 has no candidate to compare with)
-    assert module._capped_options(ctx, Plane, later, samples) is ctx.fit_options
+    assert module._cap(ctx, Plane, later, samples) is None
     for given in ({"max_hypotheses": 10}, {"options": None}):
         ctx.fit_options = given
-        assert module._capped_options(ctx, Plane, later[:1], samples[:1]) is given
+        assert module._cap(ctx, Plane, later[:1], samples[:1]) is None
 
 
 def test_connected_components_and_choice():

@@ -11,7 +11,7 @@ from .. import _checks
 from ..io.inputs import converted_batch
 from ..shapes import Model
 from .cloud import Cloud, estimate_normals, prepare, prepare_many
-from .loop import searches
+from .loop import lower, searches
 from .options import Bounds, FitOptions
 from .refine import FINAL_MIN_POINTS, final_refit, host_lo
 from .result import FitResult
@@ -77,6 +77,19 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     -------
     list of FitResult (or None), one per cloud.
     """
+    return started_batch(clouds, shape, normals=normals, thresholds=thresholds, key=key,
+                         skip_failures=skip_failures, options=options, **settings)()
+
+
+def started_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
+                  skip_failures: bool = False, options: FitOptions | None = None,
+                  start: bool = False, **settings):
+    """``fit_batch`` in two steps: the call is checked and its clouds prepared now (with
+    ``start`` its searches' first batches dispatched too, ``loop.searches``), and
+    ``finish(max_hypotheses=None)`` is returned, which runs the rest and gives
+    fit_batch's list; ``max_hypotheses`` lowers the options' (the first batch does not
+    depend on it). So a caller can dispatch several calls' first batches at once
+    (``detect``'s shapes of a round)."""
     cls = _checks.model_class(shape)
     checked = FitOptions.build(options, **settings).check(cls)
     clouds, normals = converted_batch(clouds, normals, seed=lambda: _checks.numpy_seed(key))
@@ -112,29 +125,34 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
             except ValueError as err:
                 raise named(i, err) from None
     if not prepared:
-        return results
+        return lambda max_hypotheses=None: results
     estimate_normals(prepared)
+    run = searches(cls, checked, prepared, key, seed, which, start)
 
-    for part, (thetas, drawn, status) in searches(cls, checked, prepared, key, seed, which):
-        # (while the next parts are searched: ``loop.searches``)
-        # (not ``clouds``: ``named`` reads the call's count from it)
-        searched = [prepared[j] for j in part]
-        if checked.polish or (checked.refine and checked.final_refit):
-            thetas = refitted(cls, searched, thetas, checked)
-        found = (results_many(cls, searched, thetas, drawn, status)
-                 if len(searched) >= MANY_MIN else [None] * len(searched))
-        for k, j in enumerate(part):
-            i = which[j]
-            if found[k] is not None:
-                results[i] = found[k]
-                continue
-            try:  # (cloud by cloud: where results_many gave none, this raises the why)
-                results[i] = result(cls, searched[k], thetas[k], drawn[k], status[k],
-                                    checked)
-            except _checks.FitError as err:
-                if not skip_failures:
-                    raise named(i, err) from None
-    return results
+    def finish(max_hypotheses: int | None = None) -> list[FitResult | None]:
+        lowered = checked if max_hypotheses is None else lower(checked, cls, max_hypotheses)
+        for part, (thetas, drawn, status) in run(max_hypotheses):
+            # (while the next parts are searched: ``loop.searches``)
+            # (not ``clouds``: ``named`` reads the call's count from it)
+            searched = [prepared[j] for j in part]
+            if lowered.polish or (lowered.refine and lowered.final_refit):
+                thetas = refitted(cls, searched, thetas, lowered)
+            found = (results_many(cls, searched, thetas, drawn, status)
+                     if len(searched) >= MANY_MIN else [None] * len(searched))
+            for k, j in enumerate(part):
+                i = which[j]
+                if found[k] is not None:
+                    results[i] = found[k]
+                    continue
+                try:  # (cloud by cloud: where results_many gave none, this raises the why)
+                    results[i] = result(cls, searched[k], thetas[k], drawn[k], status[k],
+                                        lowered)
+                except _checks.FitError as err:
+                    if not skip_failures:
+                        raise named(i, err) from None
+        return results
+
+    return finish
 
 
 def result(cls: type[Model], cloud: Cloud, theta, drawn, status,

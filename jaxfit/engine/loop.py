@@ -161,19 +161,22 @@ def parts(sizes, groups, cores: int = 1) -> list[tuple[list[int], int, int | Non
 
 
 def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
-             which=None):
-    """Run the checked ``options`` on the prepared clouds, one ``search_group`` per part
-    of ``parts``, yielding (part, (theta, drawn, status)) in the parts' order: the part's
-    clouds (indices into ``clouds``), the best theta (C, P) of each (NaN where none was
-    valid; with ``options.polish`` the best batch's ``cls.lo_starts`` best (C, S, P),
-    NaN where invalid, for ``refine.host_lo`` to refine each), hypotheses drawn (C,)
-    and the Status (C,) of each. ``key`` is the call's JAX key, or None with the int
-    ``seed`` it stands for; ``which``: each cloud's index in the call (its key is
-    fold_in(key, index); default 0, 1, ...).
+             which=None, start: bool = False):
+    """The search of the prepared clouds with the checked ``options``, one
+    ``search_group`` per part of ``parts``: returns ``run(max_hypotheses=None)``, a
+    generator of (part, (theta, drawn, status)) in the parts' order: the part's clouds
+    (indices into ``clouds``), the best theta (C, P) of each (NaN where none was valid;
+    with ``options.polish`` the best batch's ``cls.lo_starts`` best (C, S, P), NaN where
+    invalid, for ``refine.host_lo`` to refine each), hypotheses drawn (C,) and the Status
+    (C,) of each. ``key`` is the call's JAX key, or None with the int ``seed`` it stands
+    for; ``which``: each cloud's index in the call (its key is fold_in(key, index);
+    default 0, 1, ...). ``max_hypotheses`` lowers the options' (the first batch does not
+    depend on it).
 
     Where a group was cut (on the CPU, one device), the parts run one per core at once
     in threads, and the next ones go on while the caller works on the one it was given;
-    else one after another in the caller's thread.
+    else one after another in the caller's thread, and with ``start`` each part's first
+    batch is dispatched now (``Search``), before ``run`` is called.
     """
     which = list(range(len(clouds))) if which is None else list(which)
     devices = len(jax.local_devices())
@@ -181,18 +184,62 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
     groups = call_groups(sizes, devices)
     count = cores() if devices == 1 and on_cpu() else 0  # (a GPU takes a group whole)
     todo = parts(sizes, groups, count)
+    cut = len(todo) > len(groups)
 
-    def run(part):
+    def arguments(part, lowered):
         clouds_of, bucket, rows = part
-        return search_group(cls, options, [clouds[j] for j in clouds_of], key, seed,
-                            [which[j] for j in clouds_of], bucket, rows)
+        return (cls, lowered, [clouds[j] for j in clouds_of], key, seed,
+                [which[j] for j in clouds_of], bucket, rows)
 
-    if len(todo) == len(groups):  # (no group was cut)
-        for part in todo:
-            yield part[0], run(part)
-        return
-    for part, found in in_threads(run, todo, min(len(todo), count)):
-        yield part[0], found
+    started = [Search(*arguments(part, options)) for part in todo] if start and not cut \
+        else None
+
+    def run(max_hypotheses=None):
+        lowered = options if max_hypotheses is None else lower(options, cls, max_hypotheses)
+        if cut:
+            yield from ((part[0], found) for part, found in in_threads(
+                lambda part: search_group(*arguments(part, lowered)), todo,
+                min(len(todo), count)))
+            return
+        for k, part in enumerate(todo):
+            yield part[0], (started[k].result(max_hypotheses) if started is not None
+                            else search_group(*arguments(part, lowered)))
+
+    return run
+
+
+def lower(options: FitOptions, cls: type[Model], max_hypotheses: int) -> FitOptions:
+    """The checked ``options`` with ``max_hypotheses`` instead of their own."""
+    return FitOptions.build(options, max_hypotheses=max_hypotheses).check(cls)
+
+
+class Search:
+    """One ``search_group`` in two steps: made, it dispatches the first batch (its
+    kernel, and with LO its first refinement) and returns; ``result`` reads them and runs
+    the rest. A caller can so dispatch several searches' first batches at once and
+    finish them in turn, the device running the later ones while the host works on the
+    earlier (``detect``'s shapes of a round)."""
+
+    def __init__(self, *args):
+        self._steps = _search_steps(*args)
+        self._found = None
+        try:
+            next(self._steps)
+        except StopIteration as stop:  # (no batch to run)
+            self._found = stop.value
+
+    def result(self, max_hypotheses: int | None = None):
+        """``search_group``'s (theta, drawn, status); ``max_hypotheses``: at most that
+        many hypotheses a cloud instead of the options' (the first batch does not depend
+        on it)."""
+        if self._found is None:
+            try:
+                self._steps.send(max_hypotheses)
+            except StopIteration as stop:
+                self._found = stop.value
+            else:  # pragma: no cover - _search_steps yields once
+                raise RuntimeError("a search yields once")
+        return self._found
 
 
 def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
@@ -200,6 +247,14 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
     """The search of clouds that share one loop (as ``searches`` gives it for a part),
     padded to ``size`` points (a bucket; default the largest cloud's) and ``rows``
     slots (default ``backend.slots`` of the clouds)."""
+    return Search(cls, options, clouds, key, seed, which, size, rows).result()
+
+
+def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
+                  which=None, size: int | None = None, rows: int | None = None):
+    """``search_group`` as a generator for ``Search``: it yields once, after dispatching
+    the first batch, and takes a lower ``max_hypotheses`` (or None) there; it returns
+    the search's (theta, drawn, status)."""
     est = cls.estimator(options.estimator)
     count = len(clouds)
     devices = jax.local_devices()
@@ -265,6 +320,10 @@ def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key
                 ahead.join()
                 ahead = None
             early = lo(theta, cost, a)
+        if batch == 0:  # (``Search``'s first step ends here: the batch dispatched, not read)
+            lowered = yield
+            if lowered is not None:
+                options = lower(options, cls, lowered)
         batch += 1
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
