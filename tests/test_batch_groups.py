@@ -173,3 +173,27 @@ def test_a_cloud_alone_in_its_loop_is_named_in_the_error():
     with pytest.raises(jaxfit.FitError, match=r"^cloud 0: the best sphere hypothesis has "
                                               r"no inliers"):
         jaxfit.fit_batch(clouds, "sphere", thresholds=[1e-12] + [None] * 32, key=3)
+
+
+@pytest.mark.parametrize("cut", [False, True])
+def test_a_started_batch_finished_with_a_lower_count_is_fit_batch_with_it(monkeypatch, cut):
+    # started_batch(start=True) dispatches every loop's first batch at once (detect's
+    # shapes of a round); finished with max_hypotheses=300 (min_hypotheses would take
+    # every cloud to 1024) it gives fit_batch's results with that count, bit for bit, in
+    # one loop per group and in parts run in threads (where nothing starts early).
+    from jaxfit.engine.fit import started_batch
+
+    clouds, shapes = clouds_and_kernel_shapes(monkeypatch)
+    monkeypatch.setattr(loop, "cores", lambda: 2 if cut else 0)
+    monkeypatch.setattr(loop, "PART_LEAST", 16)
+    expected = jaxfit.fit_batch(clouds, "sphere", key=3, min_hypotheses=1024,
+                                max_hypotheses=300)
+    before = len(shapes)
+    finish = started_batch(clouds, "sphere", key=3, min_hypotheses=1024, start=True)
+    assert len(shapes) - before == (0 if cut else 2)  # the two loops' first batches
+    found = finish(300)
+    assert {r.num_hypotheses for r in found} == {512}  # two batches of 256, then the cap
+    for a, b in zip(expected, found, strict=True):
+        assert a.model.to_dict() == b.model.to_dict()
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+        assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
