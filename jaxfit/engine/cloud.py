@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 
 import numpy as np
 
@@ -38,9 +37,17 @@ SPLIT_POINTS = 1 << 17
 
 def default_threshold(sides) -> float:
     """The default inlier threshold of a cloud whose bounding box has sides (3,):
-    ``DEFAULT_THRESHOLD_FRACTION`` of its diagonal."""
-    sides = np.asarray(sides, np.float64).ravel()  # (np.linalg.norm's own sum, without
-    return DEFAULT_THRESHOLD_FRACTION * math.sqrt(sides.dot(sides))  # its ~6 us of checks)
+    ``DEFAULT_THRESHOLD_FRACTION`` of its diagonal (``default_thresholds``)."""
+    return float(default_thresholds(sides)[0])
+
+
+def default_thresholds(sides) -> np.ndarray:
+    """``default_threshold`` of each of C clouds whose bounding boxes have sides (C, 3):
+    (C,), each squared diagonal by one stacked matmul (the dot product of one cloud's,
+    without np.linalg.norm's ~6 us of checks)."""
+    sides = np.asarray(sides, np.float64).reshape(-1, 3)
+    squares = np.matmul(sides[:, None, :], sides[:, :, None])[:, 0, 0]
+    return DEFAULT_THRESHOLD_FRACTION * np.sqrt(squares)
 
 
 def bucket_size(n: int) -> int:
@@ -200,9 +207,7 @@ def _prepared(clouds, thresholds, bounds: Bounds) -> list[Cloud] | None:
     scale = np.maximum.reduceat(np.sqrt(norms, out=norms), starts)
     if np.any((extent > 0) & (extent < _checks.MIN_EXTENT)) or not np.all(scale > 0):
         return None
-    sides = hi - lo  # (``default_threshold`` of each: stacked matmul is its dot, bit for bit)
-    defaults = (DEFAULT_THRESHOLD_FRACTION
-                * np.sqrt(np.matmul(sides[:, None, :], sides[:, :, None])[:, 0, 0])).tolist()
+    defaults = default_thresholds(hi - lo).tolist()
     try:
         limits = [defaults[i] if t is None else _checks.positive(t, "threshold")
                   for i, t in enumerate(thresholds)]
