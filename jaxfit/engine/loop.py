@@ -309,6 +309,9 @@ def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], ke
                 cls, batch_size, est.name, a["points"], a["normals"], a["n"],
                 a["n_sample"], a["keys"], a["threshold"], a["bounds"], batch, gated,
                 options.sampler, options.scorer, beside_refinement=options.refine)
+        if ahead is not None:  # the first refinement's program, compiled meanwhile
+            ahead.join()
+            ahead = None
         where = np.arange(rows_count) if searching is None else searching  # slot of each row
         early = None
         if options.refine and batch == 0 and searching is None:
@@ -316,9 +319,6 @@ def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], ke
             # its refinement is dispatched before the kernel's costs are read, so that it
             # runs straight after the kernel (one wait on the device, not two); it is
             # dropped below where the slots to refine turn out otherwise.
-            if ahead is not None:  # the first refinement's program, compiled meanwhile
-                ahead.join()
-                ahead = None
             early = lo(theta, cost, a)
         if batch == 0:  # (``Search``'s first step ends here: the batch dispatched, not read)
             lowered = yield
@@ -332,9 +332,6 @@ def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], ke
         raw[where] = np.asarray(cost, np.float64)[:, 0]  # (sliced on the host: see below)
         improved = active & (raw < best_raw)
         best_raw = np.where(improved, raw, best_raw)
-        if ahead is not None:  # the first refinement's program, compiled meanwhile
-            ahead.join()
-            ahead = None
         if options.refine and improved.any():
             polishing = subset_rows(improved, len(devices))
             if polishing is not None:  # (else every slot: the kernel ran on all of them)
