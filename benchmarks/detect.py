@@ -310,7 +310,8 @@ def _side_markdown(rows, meta) -> str:
 #: and for the code before it (5dab3bd), which had no RadiusGraph.
 _STAGES = [("neighbour structure (tree, spacing, pairs)", "jaxfit.detect", "RadiusGraph.of"),
            ("normals", "jaxfit.detect", "estimate_normals"),
-           ("groups", "jaxfit.detect", "_groups"), ("fits", "jaxfit.detect", "fit_batch"),
+           ("groups", "jaxfit.detect", "_groups"),
+           ("fits", "jaxfit.detect", "started_batch"),
            ("supports: compatible points", "jaxfit.detect", "_compatible"),
            ("supports: largest component", "jaxfit.detect", "_largest"),
            ("winners' refit", "jaxfit.engine.refine", "final_refit"),
@@ -329,6 +330,7 @@ def stages(name: str, runs: int = 3) -> dict:
     imports: ``PYTHONPATH=<a worktree> python benchmarks/detect.py --stages before``
     times that worktree's detect (the stage functions of 5dab3bd are known too)."""
     import collections
+    import functools
     import importlib
     import sys
 
@@ -340,13 +342,15 @@ def stages(name: str, runs: int = 3) -> dict:
     def wrapped(owner, attr, label):
         inner = getattr(owner, attr)
 
-        def timed(*args, **kwargs):
+        def timed(*args, _inner=inner, _first=True, **kwargs):
             start = time.process_time()
             try:
-                return inner(*args, **kwargs)
+                out = _inner(*args, **kwargs)
             finally:
                 spent[label] += time.process_time() - start
-                calls[label] += 1
+                calls[label] += _first
+            # (a started fit returns its finish: timed as the same stage and call)
+            return functools.partial(timed, _inner=out, _first=False) if callable(out) else out
         setattr(owner, attr, timed)
 
     for label, where, path in (_STAGES if hasattr(module, "RadiusGraph") else _STAGES_BEFORE):

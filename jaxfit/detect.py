@@ -287,6 +287,13 @@ SPACING_MARGIN = 1.1
 #: ``capped_pairs`` (bounded memory) instead of listing every pair (a dense cluster of k
 #: points has ~k^2 / 2: 20,000 near-copies of one point needed 9 GB).
 PAIR_BUDGET = 32
+#: ``RadiusGraph.components`` labels up to this many pairs by NumPy hooking
+#: (``hooked_labels``), more with scipy's csgraph: the hooking's passes over the pairs
+#: cost more than scipy's graph beyond ~30,000 (docs/detect.md).
+HOOKING_PAIRS = 1 << 15
+#: Most hooking rounds before scipy takes over; each at least halves the distance to a
+#: root in the scenes measured (2-5 rounds).
+HOOKING_ROUNDS = 32
 
 # ----- pure pieces --------------------------------------------------------------------
 
@@ -459,18 +466,25 @@ class RadiusGraph:
         """Labels (K,) of the connected components of the points ``members`` (K,)
         (indices into the cloud) joined within the radius, numbered by decreasing size
         in points (0 is the largest; ties in order of first appearance)."""
-        from scipy.sparse.csgraph import connected_components
-
         if len(members) == 0:
             return np.empty(0, np.int64)
         rows = self.inverse[members]
         mark = np.zeros(len(self.distinct), bool)
         mark[rows] = True
-        kept = np.flatnonzero(mark)
         position = np.cumsum(mark) - 1
-        graph = self.upper if len(kept) == len(mark) else self.upper[kept][:, kept]
-        # (weak components of the one-way pairs: the undirected graph's components)
-        _, labels = connected_components(graph, directed=True, connection="weak")
+        count = int(position[-1]) + 1
+        first, second = self.pairs[:, 0], self.pairs[:, 1]
+        kept = np.flatnonzero(mark[first] & mark[second])
+        labels = None
+        if len(kept) <= HOOKING_PAIRS:
+            labels = hooked_labels(count, position[first[kept]], position[second[kept]])
+        if labels is None:
+            from scipy.sparse.csgraph import connected_components
+
+            keep = np.flatnonzero(mark)
+            graph = self.upper if count == len(mark) else self.upper[keep][:, keep]
+            # (weak components of the one-way pairs: the undirected graph's components)
+            _, labels = connected_components(graph, directed=True, connection="weak")
         labels = labels[position[rows]]
         by_size = np.argsort(-np.bincount(labels), kind="stable")
         return np.argsort(by_size)[labels]
@@ -490,6 +504,28 @@ class RadiusGraph:
         """(M, K): for each distinct point, the sum of values (M, K) over the points it
         is paired with (the symmetric adjacency's product, from its upper triangle)."""
         return self.upper @ values + self.upper.T @ values
+
+
+def hooked_labels(count: int, first, second, rounds: int = HOOKING_ROUNDS):
+    """Component labels (count,) of the graph of ``count`` nodes with edges (first,
+    second) (E,), numbered by their lowest node (as scipy's ``connected_components``
+    numbers them), by hooking each root onto the lowest root it touches and pointer
+    jumping to the roots, until nothing moves; None if that takes more than ``rounds``
+    rounds. Why: at the few thousand pairs of a group's leftovers, scipy's graph and its
+    checks cost ~0.3 ms a call, these NumPy passes tens of us (docs/detect.md)."""
+    label = np.arange(count)
+    for _ in range(rounds):
+        a, b = label[first], label[second]
+        low = np.minimum(a, b)
+        hooked = label.copy()
+        np.minimum.at(hooked, a, low)
+        np.minimum.at(hooked, b, low)
+        while not np.array_equal(jumped := hooked[hooked], hooked):
+            hooked = jumped
+        if np.array_equal(hooked, label):
+            return np.unique(label, return_inverse=True)[1]
+        label = hooked
+    return None
 
 
 def _pairs(tree, points: np.ndarray, radius: float, allowance: float = 1.0) -> np.ndarray:

@@ -2,11 +2,20 @@
 (``normals.pair_normals``): the same pairs, spacing, components and assignment as the
 direct computations they replaced. NumPy and scipy only: nothing compiles."""
 
+import sys
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from jaxfit.detect import RadiusGraph, _spacing, components, median_spacing, pair_bound
+from jaxfit.detect import (
+    RadiusGraph,
+    _spacing,
+    components,
+    hooked_labels,
+    median_spacing,
+    pair_bound,
+)
 from jaxfit.detect import estimate_normals as graph_normals
 from jaxfit.normals import distinct_inverse, estimate_normals, pair_normals
 from jaxfit.shapes import Cylinder, Sphere
@@ -94,6 +103,31 @@ def test_components_of_members_match_their_own_graph():
     sizes = np.bincount(labels)
     assert np.all(np.diff(sizes) <= 0)  # numbered by decreasing size
     assert graph.components(np.empty(0, np.int64)).shape == (0,)
+
+
+def test_hooked_labels_are_scipys_components(monkeypatch):
+    """The NumPy hooking numbers components as scipy does (by their lowest node), on
+    random sparse graphs, a long path in a shuffled order and a graph without edges; it
+    gives up (None) rather than run past its rounds, and components then asks scipy."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(3)
+    cases = [(n, rng.integers(0, n, (2, e))) for n, e in ((50, 30), (400, 350), (2000, 2500))]
+    order = rng.permutation(3000)
+    cases += [(3000, np.stack([order[:-1], order[1:]])), (10, np.zeros((2, 0), int))]
+    for count, (first, second) in cases:
+        graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(count, count))
+        _, expected = connected_components(graph, directed=True, connection="weak")
+        np.testing.assert_array_equal(hooked_labels(count, first, second), expected)
+    assert hooked_labels(3000, order[:-1], order[1:], rounds=1) is None
+    points = _cloud()
+    graph = RadiusGraph.of(points, connect=4.0)
+    members = np.flatnonzero(rng.random(len(points)) < 0.5)
+    hooked = graph.components(members)
+    # (the module, not jaxfit's ``detect`` function of the same name)
+    monkeypatch.setattr(sys.modules["jaxfit.detect"], "HOOKING_PAIRS", -1)  # scipy's path
+    np.testing.assert_array_equal(graph.components(members), hooked)
 
 
 def test_near_marks_the_owners_points_and_their_neighbours():
