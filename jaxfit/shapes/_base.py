@@ -207,16 +207,15 @@ class Model:
         gate's measure on this model, by one central difference of ``step``. (On a box
         the kernel's three planes give the far faces' points the wrong normal.)"""
         p, m = components(as_points(points)), components(as_points(normals))
-        along = central_difference(lambda q: self.residual(np.stack(q, axis=1)), p, m, step)
-        return along / (2 * step)
+        return central_difference(self.coordinate_residual, p, m, step) / (2 * step)
 
     def surface_normal(self, points, step: float = SLOPE_STEP):
         """Unit normals (N, 3) of the surface ``residual`` measures (a box's six faces)
         near points (N, 3): its gradient by central differences of ``step``; the
         residual's sign decides the normal's."""
         p = components(as_points(points))
-        grad = np.stack([central_difference(lambda q: self.residual(np.stack(q, axis=1)), p,
-                                            e, step) for e in np.eye(3)], axis=1)
+        grad = np.stack([central_difference(self.coordinate_residual, p, e, step)
+                         for e in np.eye(3)], axis=1)
         return grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
 
     @staticmethod
@@ -257,7 +256,12 @@ class Model:
     def residual(self, points):
         """Signed distance (N,) of points (N, 3) to the surface used to classify inliers:
         the unbounded surface for plane, sphere, cylinder and cone; the six faces for a box."""
-        return self.theta_residual(self.theta(), components(as_points(points)), np)
+        return self.coordinate_residual(components(as_points(points)))
+
+    def coordinate_residual(self, p):
+        """``residual`` of the points given as three coordinate arrays p (x, y, z), the
+        form the finite differences shift (no (N, 3) array stacked per difference)."""
+        return self.theta_residual(self.theta(), p, np)
 
     def theta(self):
         """The flat hypothesis vector (num_params,) of this model (unbatched)."""

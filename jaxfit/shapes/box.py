@@ -175,6 +175,9 @@ class Box(Model):
         q = np.abs(local) - 0.5 * self._array("extents")
         return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
 
+    def coordinate_residual(self, p):
+        return self.residual(np.stack(p, axis=1))
+
     def sample(self, count, rng):
         """(count, 3) points uniform on the six faces and their outward normals."""
         ext = self._array("extents")
