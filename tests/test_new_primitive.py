@@ -98,3 +98,20 @@ def test_a_line_takes_bounds_batches_and_serialisation(line):
         jaxfit.fit(clouds[0], "line", radius_range=(0, 1))
     data = results[0].model.to_dict()
     assert Model.from_dict(data).to_dict() == data
+
+
+def test_field_specs_must_name_the_fields():
+    """``from_dict`` and ``rescaled`` build a model from its ``field_specs``: a class whose
+    specs leave out a field is refused when it is registered, naming both lists."""
+
+    class Ray(Model):
+        origin: np.ndarray
+        direction: np.ndarray
+
+        name: ClassVar[str] = "ray-not-registered"
+        field_specs: ClassVar = {"origin": ((3,), POINT)}
+
+    with pytest.raises(TypeError, match=r"field_specs must name its fields \['origin', "
+                                         r"'direction'\]"):
+        register(Ray)
+    assert "ray-not-registered" not in REGISTRY

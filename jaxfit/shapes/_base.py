@@ -127,8 +127,11 @@ def register(cls):
     hashing and the repr are ``Model``'s: the dataclass ones compare array fields with
     ``==``, which raises, and print ``np.float64(...)``.)"""
     cls = dataclasses.dataclass(frozen=True, eq=False, repr=False)(cls)
-    cls.estimators = _estimators(cls)
     names = [f.name for f in dataclasses.fields(cls)]
+    if sorted(names) != sorted(cls.field_specs):  # (from_dict and rescaled build from it)
+        raise TypeError(f"{cls.__name__}.field_specs must name its fields {names}, got "
+                        f"{list(cls.field_specs)}")
+    cls.estimators = _estimators(cls)
     jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
     REGISTRY[cls.name] = cls
     return cls
@@ -458,13 +461,14 @@ class Model:
 
     def rescaled(self, scale: float, shift) -> Model:
         """The same model in coordinates p * scale + shift (the engine fits a normalised cloud)."""
-        changes = {}
+        fields = {}
         for field, (_, kind) in self.field_specs.items():
             value = getattr(self, field)
-            if value is None or kind == INVARIANT:
-                continue
-            changes[field] = value * scale + (shift if kind == POINT else 0.0)
-        return dataclasses.replace(self, **changes)
+            if value is not None and kind != INVARIANT:
+                value = value * scale + (shift if kind == POINT else 0.0)
+            fields[field] = value
+        # (every field is in field_specs: dataclasses.replace's checks cost ~8 us a fit)
+        return type(self)(**fields)
 
     def _array(self, field):
         return np.asarray(getattr(self, field), dtype=np.float64)
