@@ -204,7 +204,10 @@ def results_many(cls: type[Model], clouds: list[Cloud], thetas, drawn, status) -
     medians and ``main_interval``), 15-40 % of ``fit_batch`` on 500-point clouds
     (docs/engine.md, "Results for many clouds")."""
     out: list = [None] * len(clouds)
-    if not cls.pointwise_theta or any(c.gated for c in clouds):
+    # (each distinct Bounds asked once: the clouds of a call share the call's, and a
+    # cloud's own ``gated``, a cached_property, cost ~15 us on its first read)
+    if not cls.pointwise_theta or any(b.gated for b in {id(c.bounds): c.bounds
+                                                          for c in clouds}.values()):
         return out
     thetas = np.asarray(thetas, np.float64)
     ok = np.flatnonzero(np.isfinite(thetas).all(axis=1)).tolist()
