@@ -176,6 +176,7 @@ class Box(Model):
         return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
 
     def coordinate_residual(self, p):
+        # (the six faces are measured in the box's frame, from the (N, 3) array)
         return self.residual(np.stack(p, axis=1))
 
     def sample(self, count, rng):
