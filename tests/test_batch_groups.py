@@ -150,7 +150,11 @@ def test_large_groups_are_cut_into_parts_of_their_bucket():
 
 def test_clouds_searched_in_parts_get_the_results_of_one_loop(monkeypatch):
     # The 32 small clouds cut into two parts of 16 (searched at once in two threads):
-    # every result the same, bit for bit, as in one loop of 32.
+    # every result the same as in one loop of 32: the same inliers, hypotheses and
+    # status; parameters and costs to float32 rounding, not bit for bit. The loop of 32
+    # refines its two groups of 16 regrouped (``refine.compacted``), each part of 16 as
+    # one group, which on some AVX2 CPUs round an LM step apart (session 29's: one
+    # sphere's centre 1.3e-9 apart; session 28's had matched bit for bit).
     clouds, shapes = clouds_and_kernel_shapes(monkeypatch)
     monkeypatch.setattr(loop, "cores", lambda: 0)
     together = jaxfit.fit_batch(clouds, "sphere", key=3)
@@ -160,9 +164,10 @@ def test_clouds_searched_in_parts_get_the_results_of_one_loop(monkeypatch):
     parts = jaxfit.fit_batch(clouds, "sphere", key=3)
     assert (16, 1024) in shapes
     for a, b in zip(together, parts, strict=True):
-        assert a.model.to_dict() == b.model.to_dict()
+        np.testing.assert_allclose(_flat(a.model), _flat(b.model), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(a.cost, b.cost, rtol=1e-5)
         np.testing.assert_array_equal(a.inliers, b.inliers)
-        assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
+        assert (a.num_hypotheses, a.status) == (b.num_hypotheses, b.status)
 
 
 def test_a_cloud_alone_in_its_loop_is_named_in_the_error():
