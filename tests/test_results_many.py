@@ -43,6 +43,12 @@ def test_segment_helpers_are_their_one_array_twins_bit_for_bit(rng):
     for i, s in enumerate(segments):
         assert (lo[i], hi[i]) == g.main_interval(s, gaps[i])
         assert medians[i] == g.median(s)
+    # The medians both ways: segments of similar lengths share one padded partition,
+    # very unequal ones (mostly padding) are taken one by one.
+    for sizes in (rng.integers(300, 400, 50), [1, 2, 3, 2000]):
+        segments = [np.round(rng.normal(size=n), 2) for n in sizes]  # (ties)
+        medians = g.segment_medians(np.concatenate(segments), sizes)
+        assert [float(m) for m in medians] == [float(g.median(s)) for s in segments]
     # Strays far from the main run are cut, not spanned.
     run = np.concatenate([rng.uniform(0, 1, 500), [3.0, 3.5]])
     assert g.main_intervals(run, [len(run)], [0.01])[1][0] < 1.0

@@ -371,11 +371,35 @@ def sorted_segments(values, counts):
 
 
 def segment_medians(values, counts):
-    """``median`` (C,) of each segment of values (M,) (segment i the next counts[i]
-    values): ``median`` of each slice, which is faster than one sort of all segments
-    (``sorted_segments``: ~6 vs ~4 us a segment of ~400 values)."""
-    ends = np.cumsum(counts).tolist()
-    return np.array([median(values[end - n:end]) for end, n in zip(ends, counts, strict=True)])
+    """``median`` (C,) of each segment of values (M,) (segment i the next counts[i] >= 1
+    values), bit for bit. Segments of similar lengths (a batch's clouds) go in one
+    partition: each is a row padded so that its middle value falls in one column for all
+    rows (``-inf`` before it, ``+inf`` after), the row's lower middle then being the
+    largest value left of that column. Segments of very unequal lengths, whose rows would
+    be mostly padding, take ``median`` each (an 80 x ~350 block: 0.38 -> 0.20 ms; a
+    sort of all segments, ``sorted_segments``, had cost more than the slices)."""
+    counts = np.asarray(counts, np.int64)
+    half = counts // 2
+    middle = int(half.max())
+    width = middle + int((counts - half).max())
+    total = int(counts.sum())
+    if width * len(counts) > 2 * total:
+        ends = np.cumsum(counts).tolist()
+        return np.array([median(values[end - n:end])
+                         for end, n in zip(ends, counts.tolist(), strict=True)])
+    rows = np.full((len(counts), width), np.inf)
+    lead = middle - half  # -inf before each segment's values
+    base = np.arange(len(counts)) * width
+    flat = rows.ravel()
+    if middle:
+        flat[np.repeat(base, lead) + np.arange(int(lead.sum()))
+             - np.repeat(np.cumsum(lead) - lead, lead)] = -np.inf
+    flat[np.arange(total) + np.repeat(base + lead - (np.cumsum(counts) - counts), counts)] = \
+        values
+    rows.partition(middle, axis=1)
+    upper = rows[:, middle]
+    lower = rows[:, :middle].max(axis=1) if middle else upper
+    return np.where(counts % 2 == 1, upper, 0.5 * (lower + upper))
 
 
 def frames(axes):

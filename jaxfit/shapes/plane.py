@@ -112,7 +112,7 @@ class Plane(Model):
         inside = np.concatenate(points).compress(inliers, axis=0)  # (M, 3)
         u, v = (_project(inside, np.repeat(in_plane[:, :, i], counts, axis=0).T)
                 for i in range(2))
-        mu, mv = g.segment_medians(u, counts), g.segment_medians(v, counts)
+        mu, mv = np.split(g.segment_medians(np.concatenate([u, v]), np.tile(counts, 2)), 2)
         spread = _length_2d(u - np.repeat(mu, counts), v - np.repeat(mv, counts))
         _, radius = g.main_intervals(spread, counts, g.GAP_THRESHOLDS * np.asarray(thresholds))
         patch = spread <= np.repeat(radius, counts)
