@@ -474,10 +474,10 @@ class RadiusGraph:
         position = np.cumsum(mark) - 1
         count = int(position[-1]) + 1
         first, second = self.pairs[:, 0], self.pairs[:, 1]
-        kept = np.flatnonzero(mark[first] & mark[second])
+        joined = np.flatnonzero(mark[first] & mark[second])  # (the members' own pairs)
         labels = None
-        if len(kept) <= HOOKING_PAIRS:
-            labels = hooked_labels(count, position[first[kept]], position[second[kept]])
+        if len(joined) <= HOOKING_PAIRS:
+            labels = hooked_labels(count, position[first[joined]], position[second[joined]])
         if labels is None:
             from scipy.sparse.csgraph import connected_components
 

@@ -361,12 +361,17 @@ def sorted_segments(values, counts):
     with +inf: one sort for every segment (a partition per segment costs ~5 us of NumPy
     calls each)."""
     counts = np.asarray(counts, np.int64)
-    width = int(counts.max())
-    rows = np.full((len(counts), width), np.inf)
-    # value i of segment s goes to flat place s * width + (i - start of s)
-    shift = np.arange(len(counts)) * width - (np.cumsum(counts) - counts)
-    rows.ravel()[np.arange(int(counts.sum())) + np.repeat(shift, counts)] = values
+    rows = _placed(np.full((len(counts), int(counts.max())), np.inf), values, counts, 0)
     rows.sort(axis=1)
+    return rows
+
+
+def _placed(rows, values, counts, lead):
+    """rows (C, W) with segment s of values (M,) (the next counts[s] values) written in
+    row s from column lead (an int, or (C,) one a row): value i of segment s goes to flat
+    place s * W + lead[s] + (i - start of s)."""
+    shift = np.arange(len(counts)) * rows.shape[1] + lead - (np.cumsum(counts) - counts)
+    rows.ravel()[np.arange(int(counts.sum())) + np.repeat(shift, counts)] = values
     return rows
 
 
@@ -382,20 +387,13 @@ def segment_medians(values, counts):
     half = counts // 2
     middle = int(half.max())
     width = middle + int((counts - half).max())
-    total = int(counts.sum())
-    if width * len(counts) > 2 * total:
+    if width * len(counts) > 2 * int(counts.sum()):
         ends = np.cumsum(counts).tolist()
         return np.array([median(values[end - n:end])
                          for end, n in zip(ends, counts.tolist(), strict=True)])
-    rows = np.full((len(counts), width), np.inf)
-    lead = middle - half  # -inf before each segment's values
-    base = np.arange(len(counts)) * width
-    flat = rows.ravel()
-    if middle:
-        flat[np.repeat(base, lead) + np.arange(int(lead.sum()))
-             - np.repeat(np.cumsum(lead) - lead, lead)] = -np.inf
-    flat[np.arange(total) + np.repeat(base + lead - (np.cumsum(counts) - counts), counts)] = \
-        values
+    lead = middle - half  # -inf before each segment's values, +inf after them
+    rows = _placed(np.where(np.arange(width) < lead[:, None], -np.inf, np.inf), values,
+                   counts, lead)
     rows.partition(middle, axis=1)
     upper = rows[:, middle]
     lower = rows[:, :middle].max(axis=1) if middle else upper
