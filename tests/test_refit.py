@@ -41,7 +41,7 @@ def noisy(shape, n, seed, outliers=0.3):
 def information(shape, theta, surface):
     """J^T J / sigma^2 (P, P) at theta over the surface points."""
     cls = REGISTRY[shape]
-    _, jtj, _ = refine._evaluate(cls, theta, surface, np.inf, None, None,
+    _, jtj, _ = refine._evaluate(cls, theta, np.ascontiguousarray(surface.T), np.inf, None, None,
                                  canonical=refine.host_canonical(cls))
     return jtj / SIGMA**2
 
@@ -85,8 +85,9 @@ def test_refit_never_raises_the_msac_cost(shape):
         # far starts too: a few hundred noise units, or a whole percent of the size
         start = canonical(truth + rng.normal(0.0, [1e-4, 1e-3, 1e-2, 3e-2][seed], truth.size))
         theta, cost, start_cost = refine.final_refit(cls, start, points, 3 * SIGMA)
-        before, _, _ = refine._evaluate(cls, canonical(start), points, 3 * SIGMA, None, None)
-        after, _, _ = refine._evaluate(cls, theta, points, 3 * SIGMA, None, None)
+        columns = np.ascontiguousarray(points.T)  # (the (3, N) layout final_refit passes)
+        before, _, _ = refine._evaluate(cls, canonical(start), columns, 3 * SIGMA, None, None)
+        after, _, _ = refine._evaluate(cls, theta, columns, 3 * SIGMA, None, None)
         assert start_cost == before and cost == after
         assert after <= before
 

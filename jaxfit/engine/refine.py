@@ -378,16 +378,17 @@ def _chunks(n: int):
     return [slice(s, min(s + FINAL_CHUNK, n)) for s in range(0, n, FINAL_CHUNK)]
 
 
-def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None,
+def _evaluate(cls, theta, columns, threshold, normals, normal_cos, canonical=None,
               widen: float = 1.0):
-    """MSAC cost () of theta (P,) over points (N, 3), the loop's measure (a point gated
-    out on its normal costs t^2), and with ``canonical`` the normal equations of the
-    least-squares fit on its inliers (with ``widen``, on the points within that many
-    thresholds): J^T J (P, P) and J^T r (P,), J through
-    ``canonical`` (the shape's ``theta_jacobian`` times the projection's own Jacobian,
-    else forward differences of the residuals). One pass, ``FINAL_CHUNK`` points at a
-    time, in float64 (the chunk's columns contiguous: a boolean gather of (N, 3) rows had
-    cost as much as the differences)."""
+    """MSAC cost () of theta (P,) over the points whose coordinates are columns (3, N)
+    (with normals (3, N) or None), the loop's measure (a point gated out on its normal
+    costs t^2), and with ``canonical`` the normal equations of the least-squares fit on
+    its inliers (with ``widen``, on the points within that many thresholds): J^T J
+    (P, P) and J^T r (P,), J through ``canonical`` (the shape's ``theta_jacobian`` times
+    the projection's own Jacobian, else forward differences of the residuals). One pass,
+    ``FINAL_CHUNK`` points at a time, in float64 (the columns contiguous, made once by
+    ``final_refit`` for all its passes: a boolean gather of (N, 3) rows had cost as much
+    as the differences)."""
     t2, cost, size = threshold * threshold, 0.0, theta.size
     jtj, jtr = np.zeros((size, size)), np.zeros(size)
     moved = [] if canonical is None else [canonical(theta + FINAL_STEP * e)
@@ -397,17 +398,17 @@ def _evaluate(cls, theta, points, threshold, normals, normal_cos, canonical=None
     chain = None if not moved or cls.theta_jacobian is None else \
         (np.stack(moved) - theta).T / FINAL_STEP
     step = 1.0 if chain is not None else FINAL_STEP  # (the differences' rows are * step)
-    for part in _chunks(len(points)):
-        block = np.ascontiguousarray(points[part].T)  # (3, n)
+    for part in _chunks(columns.shape[1]):
+        block = columns[:, part]  # (3, n), each row contiguous
         q = tuple(block)
         if normals is None:
             r = cls.theta_residual(theta, q, np)
             r2 = r * r
         else:
-            r, slope = cls.residual_slope(theta, q, tuple(normals[part].T), np)
+            r, slope = cls.residual_slope(theta, q, tuple(normals[:, part]), np)
             r2 = np.where(np.abs(slope) >= normal_cos, r * r, t2)
         inside = r2 < t2
-        cost += float(np.sum(np.where(inside, r2, t2)))
+        cost += float(np.sum(np.fmin(r2, t2)))  # (where(inside, r2, t2), NaN included)
         if moved:
             keep = np.flatnonzero(inside if widen == 1.0 else r2 < widen * widen * t2)
             qi, ri = tuple(block.take(keep, axis=1)), r.take(keep)
@@ -450,7 +451,9 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
     canonical = host_canonical(cls)
     if not np.all(np.isfinite(theta)) or canonical is None:
         return theta, np.inf, np.inf
-    args = (points, threshold, normals, None if normals is None else float(bounds.normal_cos))
+    args = (np.ascontiguousarray(np.asarray(points).T), threshold,
+            None if normals is None else np.ascontiguousarray(np.asarray(normals).T),
+            None if normals is None else float(bounds.normal_cos))
     theta = canonical(theta)
     cost, jtj, jtr = _evaluate(cls, theta, *args, canonical=canonical, widen=widen)
     start, damping = cost, 0.0
