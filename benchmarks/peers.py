@@ -9,10 +9,12 @@ centre 5-20 sizes from the origin, Gaussian noise along the normal of sigma = 0.
 the shape's size (``Model.size``), outliers uniform in the shape's bounding box grown by
 20 %, threshold 3 sigma for every method. Every method runs once untimed per cloud
 (warm), then the methods take turns for ``repeats`` timed runs (interleaved, so the
-machine's load falls on all of them alike); the table gives the median wall time, the
-ratio jaxfit / peer (< 1: jaxfit faster), the median accuracy (normal or axis angle,
-centre and radius errors relative to the radius) and inlier precision / recall against
-the generator's truth.
+machine's load falls on all of them alike), on the first ``clouds`` clouds of a
+setting; the errors come from ``ACCURACY_CLOUDS`` clouds (the untimed runs). The table
+gives the median wall time, the ratio jaxfit / peer (< 1: jaxfit faster), the median
+accuracy (normal or axis angle, centre and radius errors relative to the radius) and
+inlier precision / recall against the generator's truth; its head applies the issue's
+rule (no slower, at equal or better accuracy) to every pair (``verdicts``).
 
 Scenes: ``SCENES`` synthetic floor scenes (``synthetic.scene``: floor + 3-4 spheres,
 cylinders, cones, ~20k points, 10 % uniform outliers added) and the two Fit4CAD scans
@@ -55,6 +57,7 @@ NOISE = 0.002  # sigma, as a fraction of Model.size()
 GROW = 0.2  # the outliers' box: the shape's bounding box grown by this fraction
 SIGMAS = 3.0  # threshold in sigmas
 ITERATIONS = 1000  # Open3D's and pyRANSAC-3D's iteration budget
+ACCURACY_CLOUDS = 10  # clouds per setting whose errors are compared (the first 2 timed)
 SCENES = 5
 SCENE_POINTS = 22_000  # sampled before hidden points go (~20k remain)
 SCENE_OUTLIERS = 0.1
@@ -285,23 +288,28 @@ def available() -> dict:
 # ----- single shapes ------------------------------------------------------------------
 
 
-def single(shapes, sizes, outliers, clouds: int, repeats: int, methods: dict) -> list[dict]:
+def single(shapes, sizes, outliers, clouds: int, repeats: int, methods: dict,
+           accuracy_clouds: int = 0) -> list[dict]:
     rows = []
     for shape in shapes:
         for n in sizes:
             for share in outliers:
-                rows.append(single_setting(shape, n, share, clouds, repeats, methods))
+                rows.append(single_setting(shape, n, share, clouds, repeats, methods,
+                                           accuracy_clouds))
                 print(json.dumps(_brief(rows[-1])), flush=True)
     return rows
 
 
-def single_setting(shape, n, share, clouds, repeats, methods) -> dict:
+def single_setting(shape, n, share, clouds, repeats, methods, accuracy_clouds=0) -> dict:
+    """One setting: the first ``clouds`` clouds timed (``repeats`` interleaved runs each),
+    the errors and inlier rates over max(clouds, accuracy_clouds) clouds (each method's
+    one untimed run of the others: medians of two clouds judge accuracy poorly)."""
     names = [m for m in methods if (shape == "plane" or not m.startswith("open3d"))
              and (m, shape, n) not in SKIP]
     times = {m: [] for m in names}
     once = set()  # methods timed by their warm run alone (SLOW_S)
     measures = {m: [] for m in names}
-    for c in range(clouds):
+    for c in range(max(clouds, accuracy_clouds)):
         seed = 1000 * c + int(100 * share) + n
         points, truth, model, threshold = cloud(shape, n, share, seed)
         runs = {}
@@ -310,7 +318,7 @@ def single_setting(shape, n, share, clouds, repeats, methods) -> dict:
             start = time.perf_counter()
             out = run()  # warm (jaxfit: compiled; peers: caches, first-call costs)
             seconds = time.perf_counter() - start
-            if m != "jaxfit" and (m in once or seconds > SLOW_S):
+            if c < clouds and m != "jaxfit" and (m in once or seconds > SLOW_S):
                 once.add(m)
                 times[m].append(seconds)
             params, mask = read(out)
@@ -321,7 +329,7 @@ def single_setting(shape, n, share, clouds, repeats, methods) -> dict:
             found["recall"] = float(mask[truth].mean())
             measures[m].append(found)
             runs[m] = run
-        for _ in range(repeats):
+        for _ in range(repeats if c < clouds else 0):
             for m in names:
                 if m in once:
                     continue
@@ -329,7 +337,7 @@ def single_setting(shape, n, share, clouds, repeats, methods) -> dict:
                 runs[m]()
                 times[m].append(time.perf_counter() - start)
     row = {"shape": shape, "points": n, "outliers": share, "clouds": clouds,
-           "repeats": repeats, "methods": {}}
+           "accuracy_clouds": max(clouds, accuracy_clouds), "repeats": repeats, "methods": {}}
     for m in names:
         keys = sorted({k for f in measures[m] for k in f if k != "failed"})
         row["methods"][m] = {
@@ -476,10 +484,82 @@ def refit_markdown(rows) -> str:
     return "\n".join(lines) + "\n"
 
 
-# ----- report -------------------------------------------------------------------------
+# ----- the issue's rule: no slower, at equal or better accuracy ----------------------
 
+#: The peers' column names, in the report's order.
 _PEERS = (("open3d_default", "Open3D default"), ("open3d_1000", "Open3D 1000 it"),
           ("pyransac3d_1000", "pyRANSAC-3D 1000 it"), ("cgal", "CGAL"))
+#: The median errors a setting is judged by (those a shape's fits report).
+ERRORS = ("angle_deg", "center_rel", "radius_rel")
+#: Verdicts of one (setting, peer) pair, in the order the summary lists them.
+VERDICTS = ("ahead", "faster, less accurate", "slower, more accurate", "behind",
+            "peer failed")
+
+
+def verdict(jax_cell: dict, peer_cell: dict) -> str:
+    """Where jaxfit stands against one peer on one setting (``single_setting``'s method
+    entries): "ahead" when its median time is at most the peer's and each median error
+    at most the peer's; "peer failed" when the peer found no model on some cloud and
+    jaxfit found one on every cloud (its time is then not a time to the same answer);
+    otherwise which of the two conditions fails."""
+    if peer_cell.get("failed") and not jax_cell.get("failed"):
+        return "peer failed"
+    faster = jax_cell["ms"] <= peer_cell["ms"]
+    accurate = not jax_cell.get("failed") and all(
+        jax_cell[k] <= peer_cell[k] for k in ERRORS if k in jax_cell and k in peer_cell)
+    return {(True, True): "ahead", (True, False): "faster, less accurate",
+            (False, True): "slower, more accurate", (False, False): "behind"}[faster, accurate]
+
+
+def scene_verdict(row: dict) -> str | None:
+    """"ahead" when jaxfit's detect took at most CGAL's time and found at least as many
+    true primitives, else "slower" / "finds fewer" / "behind"; None without CGAL."""
+    j, c = row["methods"]["jaxfit"], row["methods"].get("cgal")
+    if c is None:
+        return None
+    faster, finds = j["s"] <= c["s"], j["found"] >= c["found"]
+    return {(True, True): "ahead", (False, True): "slower", (True, False): "finds fewer",
+            (False, False): "behind"}[faster, finds]
+
+
+def verdicts(single_rows, scene_rows) -> dict:
+    """The rule applied to every (setting, peer) pair and every scene: counts per
+    verdict and the pairs that are not "ahead" (label, verdict, time ratio)."""
+    pairs = [(f"{r['shape']} {r['points']} {int(100 * r['outliers'])} % vs "
+              f"{dict(_PEERS)[m]}", verdict(r["methods"]["jaxfit"], v), v["ratio"])
+             for r in single_rows for m, v in r["methods"].items() if m != "jaxfit"]
+    scenes_ = [(r["scene"], scene_verdict(r), r["methods"]["jaxfit"]["s"]
+                / r["methods"]["cgal"]["s"]) for r in scene_rows if "cgal" in r["methods"]]
+    count = lambda rows, names: {v: sum(1 for _, w, _ in rows if w == v) for v in names}  # noqa: E731
+    return {"single": count(pairs, VERDICTS), "single_pairs": len(pairs),
+            "single_not_ahead": [p for p in pairs if p[1] != "ahead"],
+            "scenes": count(scenes_, ("ahead", "slower", "finds fewer", "behind")),
+            "scene_count": len(scenes_),
+            "scenes_not_ahead": [p for p in scenes_ if p[1] != "ahead"]}
+
+
+def verdict_markdown(summary: dict) -> list[str]:
+    """The summary's lines for the report."""
+    lines = ["## Against the issue's rule (jaxfit no slower, at equal or better accuracy)",
+             "", "Each (setting, peer) pair: *ahead* when jaxfit's median time is at most "
+             "the peer's and each of its median errors at most the peer's; *peer failed* "
+             "when the peer found no model on a cloud where jaxfit found one on all. Each "
+             "scene: *ahead* when detect took at most CGAL's time and found at least as "
+             "many true primitives.", "",
+             f"Single shapes, {summary['single_pairs']} pairs: " + ", ".join(
+                 f"{k} {n}" for k, n in summary["single"].items() if n) + ".", ""]
+    lines += [f"- {label}: {v} ({ratio:.2f}x the peer's time)"
+              for label, v, ratio in summary["single_not_ahead"]]
+    if summary["scene_count"]:
+        lines += ["", f"Scenes, {summary['scene_count']}: " + ", ".join(
+            f"{k} {n}" for k, n in summary["scenes"].items() if n) + ".", ""]
+        lines += [f"- {label}: {v} ({ratio:.2f}x CGAL's time)"
+                  for label, v, ratio in summary["scenes_not_ahead"]]
+    return lines + [""]
+
+
+# ----- report -------------------------------------------------------------------------
+
 
 
 def _accuracy_text(v: dict) -> str:
@@ -503,6 +583,8 @@ def markdown(single_rows, scene_rows, meta) -> str:
              "relative to the radius) and inlier precision / recall. *: timed by its warm "
              f"runs alone (slower than {SLOW_S} s); —: not run (pyRANSAC-3D's cylinder at "
              "1e5: minutes a run; Open3D has no sphere or cylinder).", ""]
+    lines += verdict_markdown(verdicts(single_rows, scene_rows))
+    lines += ["## The settings", ""]
     names = [m for m, _ in _PEERS if any(m in r["methods"] for r in single_rows)]
     header = "| shape | N | outliers | jaxfit | " + " | ".join(
         dict(_PEERS)[m] for m in names) + " |"
@@ -550,10 +632,12 @@ def main(argv=None):
         return
     methods = available()
     if args.quick:
-        settings = dict(sizes=SIZES[:2], outliers=(0.3,), clouds=1, repeats=2)
+        settings = dict(sizes=SIZES[:2], outliers=(0.3,), clouds=1, repeats=2,
+                        accuracy_clouds=3)
         scene_count, fit4cad, scene_repeats = 2, False, 1
     else:
-        settings = dict(sizes=SIZES, outliers=OUTLIERS, clouds=2, repeats=3)
+        settings = dict(sizes=SIZES, outliers=OUTLIERS, clouds=2, repeats=3,
+                        accuracy_clouds=ACCURACY_CLOUDS)
         scene_count, fit4cad, scene_repeats = SCENES, True, 2
     start = time.perf_counter()
     single_rows = single(SHAPES, methods=methods, **settings)
@@ -562,12 +646,14 @@ def main(argv=None):
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "seconds": time.perf_counter() - start, **settings,
             "note": f"{settings['clouds']} clouds per setting x {settings['repeats']} "
-                    "interleaved warm runs; noise sigma 0.2 % of the size, threshold 3 sigma; "
+                    f"interleaved warm runs timed, errors over {settings['accuracy_clouds']} "
+                    "clouds; noise sigma 0.2 % of the size, threshold 3 sigma; "
                     "CGAL's normals (Open3D, 16 neighbours) outside its time, jaxfit's inside."}
     args.out.mkdir(parents=True, exist_ok=True)
     name = "peers_quick" if args.quick else "peers"
     (args.out / f"{name}.json").write_text(json.dumps(
-        {"meta": meta, "single": single_rows, "scenes": scene_rows}, indent=1))
+        {"meta": meta, "single": single_rows, "scenes": scene_rows,
+         "verdicts": verdicts(single_rows, scene_rows)}, indent=1))
     (args.out / f"{name}.md").write_text(markdown(single_rows, scene_rows, meta))
     print((args.out / f"{name}.md").read_text())
 

@@ -1,0 +1,49 @@
+"""``benchmarks.peers``' verdicts: the issue's rule (no slower, at equal or better
+accuracy) applied to each (setting, peer) pair and each scene, as its report states it."""
+
+from benchmarks import peers
+
+
+def cell(ms, failed=0, **errors):
+    return {"ms": ms, "failed": failed, **errors}
+
+
+def test_verdict_needs_both_time_and_every_error():
+    jax = cell(2.0, angle_deg=0.01, center_rel=0.001)
+    assert peers.verdict(jax, cell(2.0, angle_deg=0.01, center_rel=0.001)) == "ahead"
+    assert peers.verdict(jax, cell(3.0, angle_deg=0.02, center_rel=0.002)) == "ahead"
+    # one error worse is enough to be less accurate
+    assert peers.verdict(jax, cell(3.0, angle_deg=0.02, center_rel=0.0005)) == \
+        "faster, less accurate"
+    assert peers.verdict(jax, cell(1.0, angle_deg=0.02, center_rel=0.002)) == \
+        "slower, more accurate"
+    assert peers.verdict(jax, cell(1.0, angle_deg=0.005, center_rel=0.002)) == "behind"
+
+
+def test_a_failing_side_is_judged_by_its_failures():
+    ok = cell(2.0, angle_deg=0.01)
+    # a peer that found nothing on some cloud: no time to the same answer
+    assert peers.verdict(ok, cell(1.0, failed=1)) == "peer failed"
+    # jaxfit failing is never at equal accuracy, and both failing is no excuse either
+    assert peers.verdict(cell(1.0, failed=1, angle_deg=0.01), cell(2.0, angle_deg=0.5)) == \
+        "faster, less accurate"
+    assert peers.verdict(cell(3.0, failed=1), cell(2.0, failed=1)) == "behind"
+
+
+def test_verdicts_count_every_pair_and_list_the_others():
+    rows = [{"shape": "plane", "points": 1000, "outliers": 0.3, "methods": {
+        "jaxfit": cell(2.0, angle_deg=0.01),
+        "open3d_default": {**cell(1.0, angle_deg=0.02), "ratio": 2.0},
+        "cgal": {**cell(4.0, angle_deg=0.05), "ratio": 0.5}}}]
+    scenes = [{"scene": "s", "methods": {"jaxfit": {"s": 0.2, "found": 5},
+                                         "cgal": {"s": 0.1, "found": 3}}},
+              {"scene": "t", "methods": {"jaxfit": {"s": 0.1, "found": 5},
+                                         "cgal": {"s": 0.1, "found": 5}}}]
+    summary = peers.verdicts(rows, scenes)
+    assert summary["single_pairs"] == 2
+    assert summary["single"]["ahead"] == 1 and summary["single"]["slower, more accurate"] == 1
+    assert summary["single_not_ahead"] == [
+        ("plane 1000 30 % vs Open3D default", "slower, more accurate", 2.0)]
+    assert summary["scenes"] == {"ahead": 1, "slower": 1, "finds fewer": 0, "behind": 0}
+    text = "\n".join(peers.verdict_markdown(summary))
+    assert "ahead 1, slower, more accurate 1" in text and "s: slower (2.00x" in text
