@@ -499,14 +499,14 @@ VERDICTS = ("ahead", "faster, less accurate", "slower, more accurate", "behind",
 def verdict(jax_cell: dict, peer_cell: dict) -> str:
     """Where jaxfit stands against one peer on one setting (``single_setting``'s method
     entries): "ahead" when its median time is at most the peer's and each median error
-    at most the peer's; "peer failed" when the peer found no model on some cloud and
-    jaxfit found one on every cloud (its time is then not a time to the same answer);
-    otherwise which of the two conditions fails."""
-    if peer_cell.get("failed") and not jax_cell.get("failed"):
-        return "peer failed"
+    at most the peer's; else "peer failed" when the peer found no model on some cloud
+    and jaxfit found one on every cloud (the peer's time is then not a time to the same
+    answer); otherwise which of the two conditions fails."""
     faster = jax_cell["ms"] <= peer_cell["ms"]
     accurate = not jax_cell.get("failed") and all(
         jax_cell[k] <= peer_cell[k] for k in ERRORS if k in jax_cell and k in peer_cell)
+    if not (faster and accurate) and peer_cell.get("failed") and not jax_cell.get("failed"):
+        return "peer failed"
     return {(True, True): "ahead", (True, False): "faster, less accurate",
             (False, True): "slower, more accurate", (False, False): "behind"}[faster, accurate]
 

@@ -24,6 +24,8 @@ def test_a_failing_side_is_judged_by_its_failures():
     ok = cell(2.0, angle_deg=0.01)
     # a peer that found nothing on some cloud: no time to the same answer
     assert peers.verdict(ok, cell(1.0, failed=1)) == "peer failed"
+    # ... unless jaxfit is ahead on its own terms anyway
+    assert peers.verdict(ok, cell(3.0, failed=1, angle_deg=0.02)) == "ahead"
     # jaxfit failing is never at equal accuracy, and both failing is no excuse either
     assert peers.verdict(cell(1.0, failed=1, angle_deg=0.01), cell(2.0, angle_deg=0.5)) == \
         "faster, less accurate"
