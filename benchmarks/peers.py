@@ -542,12 +542,14 @@ def verdict_markdown(summary: dict) -> list[str]:
     """The summary's lines for the report."""
     lines = ["## Against the issue's rule (jaxfit no slower, at equal or better accuracy)",
              "", "Each (setting, peer) pair: *ahead* when jaxfit's median time is at most "
-             "the peer's and each of its median errors at most the peer's; *peer failed* "
-             "when the peer found no model on a cloud where jaxfit found one on all. Each "
-             "scene: *ahead* when detect took at most CGAL's time and found at least as "
-             "many true primitives.", "",
-             f"Single shapes, {summary['single_pairs']} pairs: " + ", ".join(
-                 f"{k} {n}" for k, n in summary["single"].items() if n) + ".", ""]
+             "the peer's and each of its median errors at most the peer's; otherwise "
+             "*peer failed* when the peer found no model on a cloud where jaxfit found "
+             "one on all. Each scene: *ahead* when detect took at most CGAL's time and "
+             "found at least as many true primitives.", ""]
+    if not summary["single_pairs"]:
+        return lines + ["No peer imported: nothing to judge (see the lines it printed).", ""]
+    lines += [f"Single shapes, {summary['single_pairs']} pairs: " + ", ".join(
+        f"{k} {n}" for k, n in summary["single"].items() if n) + ".", ""]
     lines += [f"- {label}: {v} ({ratio:.2f}x the peer's time)"
               for label, v, ratio in summary["single_not_ahead"]]
     if summary["scene_count"]:

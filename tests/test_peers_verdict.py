@@ -49,3 +49,12 @@ def test_verdicts_count_every_pair_and_list_the_others():
     assert summary["scenes"] == {"ahead": 1, "slower": 1, "finds fewer": 0, "behind": 0}
     text = "\n".join(peers.verdict_markdown(summary))
     assert "ahead 1, slower, more accurate 1" in text and "s: slower (2.00x" in text
+
+
+def test_a_run_without_peers_says_so():
+    rows = [{"shape": "plane", "points": 1000, "outliers": 0.3,
+             "methods": {"jaxfit": cell(2.0, angle_deg=0.01)}}]
+    summary = peers.verdicts(rows, [{"scene": "s", "methods": {"jaxfit": {"s": 0.2,
+                                                                         "found": 5}}}])
+    assert summary["single_pairs"] == 0 and summary["scene_count"] == 0
+    assert any(line.startswith("No peer imported") for line in peers.verdict_markdown(summary))
