@@ -11,7 +11,11 @@ O(N^2) and is skipped where it would take minutes (its time is then extrapolated
 marked so). Then times
 the whole ``jaxfit.estimate_normals`` per orientation, and measures the angle between
 estimated and true normals on noisy synthetic shapes, and the share of normals that point
-outward where the shape is closed. Writes benchmarks/results/normals.{json,md}.
+outward where the shape is closed. Last, among outliers (``benchmarks.peers``' cylinder
+clouds, 10 and 60 % outliers): the normals' error on the true surface points and their
+time with and without the trimmed passes (``jaxfit.normals.TRIM_PASSES``), and how often
+a cylinder fit on those normals misses the axis by more than 0.1 deg. Writes
+benchmarks/results/normals.{json,md}.
 """
 
 from __future__ import annotations
@@ -26,7 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxfit.normals import estimate_normals, kd_tree, knn
+import jaxfit
+from jaxfit.normals import TRIM_PASSES, estimate_normals, kd_tree, knn, pca_normals
 from jaxfit.shapes import Cone, Cylinder, Plane, Sphere
 
 OUT = Path(__file__).resolve().parent / "results"
@@ -137,7 +142,62 @@ def accuracy(count: int = 20_000, noises=(0.0, 0.005, 0.01), ks=(8, 16, 32), see
     return rows
 
 
-def _markdown(speed_rows, accuracy_rows):
+#: ``outliers``: cloud sizes, outlier shares, clouds per setting (fits: at 60 % only).
+OUTLIER_SIZES = (500, 1_000, 10_000)
+OUTLIER_SHARES = (0.1, 0.6)
+OUTLIER_CLOUDS = 40
+#: A fit "misses" when its axis is further than this from the true one (degrees).
+MISS_DEG = 0.1
+
+
+def outliers(sizes=OUTLIER_SIZES, clouds: int = OUTLIER_CLOUDS):
+    """Per size and outlier share: the median (over clouds) of the median angle error of
+    the normals at the true surface points, without and with the trimmed passes; the
+    best-of-5 time of each PCA over the normals a fit estimates (at most 2048 points:
+    ``engine.cloud.NORMAL_POOL``); at 60 % outliers, the fits (``jaxfit.fit``, given
+    each set of normals) whose axis misses by more than MISS_DEG."""
+    from benchmarks import peers
+    from jaxfit.engine.cloud import NORMAL_POOL
+
+    rows = []
+    for n in sizes:
+        for share in OUTLIER_SHARES:
+            errors, times, misses = {0: [], TRIM_PASSES: []}, {0: [], TRIM_PASSES: []}, {
+                0: 0, TRIM_PASSES: 0}
+            for c in range(clouds):
+                seed = 1000 * c + int(100 * share) + n
+                points, truth, model, threshold = peers.cloud("cylinder", n, share, seed)
+                axis = model.axis / np.linalg.norm(model.axis)
+                radial = points[truth] - model.center
+                radial -= (radial @ axis)[:, None] * axis
+                radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+                hood = knn(points, K)
+                pool = hood[:NORMAL_POOL]
+                for passes in errors:
+                    normals = pca_normals(points, hood, passes)
+                    errors[passes].append(float(np.median(_angles(normals[truth], radial))))
+                    if c < 5:
+                        times[passes].append(_timed(pca_normals, points, pool, passes,
+                                                    repeats=5)[0])
+                    if share == OUTLIER_SHARES[-1]:
+                        fit = jaxfit.fit(points, "cylinder", normals=normals,
+                                         threshold=threshold, key=seed)
+                        angle = peers.accuracy(model, {"center": fit.model.center,
+                                                       "radius": fit.model.radius,
+                                                       "axis": fit.model.axis})["angle_deg"]
+                        misses[passes] += angle > MISS_DEG
+            row = {"n": n, "outliers": share, "clouds": clouds}
+            for passes, name in ((0, "plain"), (TRIM_PASSES, "trimmed")):
+                row[f"{name}_median_deg"] = float(np.median(errors[passes]))
+                row[f"{name}_ms"] = 1e3 * float(np.median(times[passes]))
+                row[f"{name}_misses"] = (misses[passes] if share == OUTLIER_SHARES[-1]
+                                         else None)
+            rows.append(row)
+            print(row, flush=True)
+    return rows
+
+
+def _markdown(speed_rows, accuracy_rows, outlier_rows):
     lines = [
         "# Normal estimation", "",
         f"k = {K}; points uniform on the unit sphere; 2 shared CPU cores; seconds, best of "
@@ -170,6 +230,24 @@ def _markdown(speed_rows, accuracy_rows):
         lines.append(f"| {r['shape']} | {r['noise']} | {r['k']} | {r['mean_deg']:.2f} | "
                      f"{r['median_deg']:.2f} | {r['p95_deg']:.2f} | {r['outward_mst']:.3f} | "
                      f"{r['outward_direct']:.3f} | {r['consistent_mst']:.3f} |")
+    lines += [
+        "", f"Among outliers: `benchmarks.peers`' cylinder clouds (radius 0.5, height 2, "
+        f"noise 0.2 %, outliers uniform in the box), {outlier_rows[0]['clouds']} per "
+        "setting, k = 16. Error: the median over clouds of the median angle between the "
+        "normals and the true ones at the true surface points (degrees). Time: the PCA "
+        "over the first 2048 points' neighbourhoods (what a fit estimates), median of 5 "
+        f"clouds, best of 5 runs. Misses: fits whose axis is off by more than {MISS_DEG} "
+        "deg (60 % outliers only).", "",
+        "| N | outliers | error plain | error trimmed | ms plain | ms trimmed | "
+        "misses plain | misses trimmed |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in outlier_rows:
+        miss = ("—", "—") if r["plain_misses"] is None else (
+            f"{r['plain_misses']} of {r['clouds']}", f"{r['trimmed_misses']} of {r['clouds']}")
+        lines.append(f"| {r['n']:,} | {100 * r['outliers']:.0f} % | "
+                     f"{r['plain_median_deg']:.2f} | {r['trimmed_median_deg']:.2f} | "
+                     f"{r['plain_ms']:.2f} | {r['trimmed_ms']:.2f} | {miss[0]} | {miss[1]} |")
     return "\n".join(lines) + "\n"
 
 
@@ -180,10 +258,11 @@ def main(argv=None):
     sizes = (1_000, 10_000, 100_000) if args.quick else (1_000, 10_000, 100_000, 1_000_000)
     speed_rows = speed(sizes)
     accuracy_rows = accuracy(ks=(16,) if args.quick else (8, 16, 32))
+    outlier_rows = outliers(clouds=10 if args.quick else OUTLIER_CLOUDS)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "normals.json").write_text(json.dumps(
-        {"speed": speed_rows, "accuracy": accuracy_rows}, indent=1))
-    (OUT / "normals.md").write_text(_markdown(speed_rows, accuracy_rows))
+        {"speed": speed_rows, "accuracy": accuracy_rows, "outliers": outlier_rows}, indent=1))
+    (OUT / "normals.md").write_text(_markdown(speed_rows, accuracy_rows, outlier_rows))
     print((OUT / "normals.md").read_text())
 
 

@@ -7,7 +7,10 @@ KD-tree (``nearest``; a brute-force kNN in JAX is O(N^2)); for few queries in a 
 cloud, a tree over the points near them only (``knn_near``: cubic cells hashed in one
 pass over the cloud, the same neighbours). The covariances are batched in NumPy, and
 their smallest eigenvectors found in closed form (``smallest_eigenvectors``;
-``numpy.linalg.eigh`` where that is ill-conditioned).
+``numpy.linalg.eigh`` where that is ill-conditioned). Where a neighbourhood is far from
+flat (outliers or a second surface among the k nearest), its plane is refitted on the
+neighbours near it (``TRIM_PASSES`` trimmed passes): a surface point's normal then
+follows its surface rather than the outliers around it.
 
 Orientation (the sign of each normal) follows Hoppe et al. 1992, "Surface reconstruction
 from unorganized points": a minimum spanning tree over the (undirected) k-NN graph with edge
@@ -376,7 +379,8 @@ def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None,
         out = np.empty((m, 3))
         out[~few] = smallest_eigenvectors(cov[~few])
         if hood is not None:
-            out[sparse] = pca_normals(points, np.reshape(hood.result(), (len(sparse), k)))
+            out[sparse] = pca_normals(points, np.reshape(hood.result(), (len(sparse), k)),
+                                      passes=0)
     return out
 
 
@@ -487,34 +491,154 @@ def knn_near(points, k: int, queries, workers: int = -1, distinct: bool = False)
     return (np.concatenate(pools), hood) if distinct else (dist, hood)
 
 
-def pca_normals(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+#: Trimmed passes of ``pca_normals``: each refits a neighbourhood's plane on the
+#: neighbours within TRIM_SPREAD times their median distance to the previous plane, so
+#: that outliers and a second surface among the k nearest pull the normal less.
+TRIM_PASSES = 2
+TRIM_SPREAD = 2.5
+#: ... but only where some neighbour lies beyond TRIM_TAIL times that median: a heavy
+#: tail (outliers), not noise, which trimming would cut into (a noisy plane's normals
+#: were 10-15 % worse without this rule; docs/normals.md).
+TRIM_TAIL = 4.0
+#: Only neighbourhoods whose surface variation (least eigenvalue / trace of the scatter,
+#: 0 on a plane, 1/3 where isotropic) lies between these bounds are trimmed: below, a
+#: clean patch (most of a cloud with few outliers) would keep its neighbours anyway;
+#: above, no surface holds most of them (an outlier's own neighbourhood, mostly).
+TRIM_VARIATION = (0.01, 0.15)
+#: A neighbourhood takes another pass only where the last one changed its neighbours and
+#: left a plane whose variation is below this (a surface found, not yet settled).
+TRIM_SETTLED = 0.05
+#: A trimmed plane is kept only where its neighbours are not (nearly) on a line:
+#: lambda2 * lambda3 of their scatter > TRIM_FLAT * trace^2 (lambda2 / lambda3 >~ TRIM_FLAT).
+TRIM_FLAT = 1e-3
+#: Inverse-iteration steps (adjugate products) from the previous normal per trimmed pass.
+TRIM_STEPS = 2
+
+
+def pca_normals(points: np.ndarray, neighbours: np.ndarray,
+                passes: int = TRIM_PASSES) -> np.ndarray:
     """Unit normals (M, 3), unoriented: the least-variance direction of each
-    neighbourhood points[neighbours] (M, k, 3)."""
+    neighbourhood points[neighbours] (M, k, 3); then, where its surface variation lies
+    within TRIM_VARIATION, up to ``passes`` times that of its neighbours near the plane
+    so found (``_near``, ``_refit``; the first neighbour, the point itself, always
+    kept), while the kept neighbours change (``TRIM_SETTLED``)."""
     out = np.empty((len(neighbours), 3), points.dtype)
+    columns = np.ascontiguousarray(points.T)  # (3, N): each block's gather is contiguous
     for start in range(0, len(neighbours), BLOCK):
-        hood = points.take(neighbours[start:start + BLOCK], axis=0)  # (B, k, 3)
-        out[start:start + BLOCK] = smallest_eigenvectors(_covariances(hood))
+        coords = _shifted(columns, neighbours[start:start + BLOCK])
+        centres, scatter = _moments(*coords)
+        normals, least = smallest_eigenvectors(_scatter_matrices(*scatter), values=True)
+        if passes and coords.shape[2] > 3:
+            trace = scatter[0] + scatter[1] + scatter[2]
+            _trim(coords, normals, centres, least / np.where(trace > 0, trace, np.inf), passes)
+        out[start:start + BLOCK] = normals
     return out
 
 
-def _covariances(hood: np.ndarray) -> np.ndarray:
-    """Scatter matrices (B, 3, 3) of neighbourhoods (B, k, 3), from sums of products of
-    coordinate arrays (faster than centring and an einsum over (B, k, 3)). Each
-    neighbourhood is first shifted to its first point, so the sums lose no digits on a
-    cloud far from the origin."""
-    x, y, z = (hood[:, :, i] - hood[:, :1, i] for i in range(3))  # (B, k) each
-    k = hood.shape[1]
-    sx, sy, sz = x.sum(axis=1), y.sum(axis=1), z.sum(axis=1)
+def _trim(coords: np.ndarray, normals: np.ndarray, centres, variation: np.ndarray,
+          passes: int) -> None:
+    """``pca_normals``'s trimmed passes over neighbourhoods with coordinates coords
+    (3, B, k), centres (3 of (B,)) and surface variation (B,) (0 where the scatter is
+    0): normals (B, 3) overwritten in place."""
+    low, high = TRIM_VARIATION
+    active = np.flatnonzero((variation > low) & (variation < high))
+    if not active.size:
+        return
+    stacked = coords.take(active, axis=1)  # (3, A, k)
+    rows = np.arange(len(active))
+    keep = np.ones(stacked.shape[1:], bool)
+    plane = np.ascontiguousarray(normals.take(active, axis=0).T)  # (3, A)
+    centre = np.stack([c.take(active) for c in centres])  # (3, A)
+    for _ in range(passes):
+        hood = stacked.take(rows, axis=1)
+        near = _near(hood, plane.take(rows, axis=1), centre.take(rows, axis=1))
+        changed = (near != keep.take(rows, axis=0)).any(axis=1)  # (the others: settled)
+        if not changed.any():
+            break
+        rows, near = rows[changed], near[changed]
+        fitted, mean, variation = _refit(hood.take(np.flatnonzero(changed), axis=1), near,
+                                         plane.take(rows, axis=1))
+        fine = np.isfinite(variation)  # (where the kept neighbours lie near a line, the
+        rows, near = rows[fine], near[fine]  # previous plane and neighbours stay)
+        plane[:, rows], keep[rows], centre[:, rows] = fitted[:, fine], near, mean[:, fine]
+        rows = rows[variation[fine] < TRIM_SETTLED]
+        if not rows.size:
+            break
+    normals[active] = plane.T
+
+
+def _shifted(columns: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """Coordinates (3, B, k) of the neighbourhoods columns[:, neighbours] (columns: the
+    points (3, N), neighbours (B, k)), each shifted to its first point, so that sums
+    over them lose no digits far from the origin."""
+    coords = columns.take(neighbours, axis=1)
+    coords -= coords[:, :, :1]
+    return coords
+
+
+def _moments(x, y, z):
+    """(centres (3,) of (B,), scatter (xx, yy, zz, xy, xz, yz) of (B,)) of neighbourhoods
+    with coordinates x, y, z (B, k) each, from sums of products of coordinate arrays
+    (faster than centring and an einsum over (B, k, 3); the row sums as products with
+    a vector of ones, several times faster than ``sum(axis=1)`` over short rows)."""
+    ones = np.ones(x.shape[1], x.dtype)
+    count = float(x.shape[1])
+    sx, sy, sz = x @ ones, y @ ones, z @ ones
 
     def scatter(u, v, su, sv):
-        return np.einsum("bk,bk->b", u, v) - su * sv / k
+        return np.einsum("bk,bk->b", u, v) - su * sv / count
 
-    xx, yy, zz = scatter(x, x, sx, sx), scatter(y, y, sy, sy), scatter(z, z, sz, sz)
-    xy, xz, yz = scatter(x, y, sx, sy), scatter(x, z, sx, sz), scatter(y, z, sy, sz)
-    return np.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], axis=1).reshape(-1, 3, 3)
+    return (sx / count, sy / count, sz / count), (
+        scatter(x, x, sx, sx), scatter(y, y, sy, sy), scatter(z, z, sz, sz),
+        scatter(x, y, sx, sy), scatter(x, z, sx, sz), scatter(y, z, sy, sz))
 
 
-def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
+def _near(coords: np.ndarray, normals: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(A, k) bool: the neighbours of neighbourhoods with coordinates coords (3, A, k)
+    within TRIM_SPREAD times the median (the upper one of an even k) distance to the
+    plane of normals (3, A) through centres (3, A), where one lies beyond TRIM_TAIL
+    times it (else all); the first, the point itself, always."""
+    distance = np.einsum("iak,ia->ak", coords, normals)
+    distance -= np.einsum("ia,ia->a", centres, normals)[:, None]
+    np.abs(distance, out=distance)
+    half = distance.shape[1] // 2
+    median = np.partition(distance, half, axis=1)[:, half]
+    near = distance <= TRIM_SPREAD * median[:, None]
+    near[:, 0] = True
+    near[distance.max(axis=1) <= TRIM_TAIL * median] = True
+    return near
+
+
+def _refit(coords: np.ndarray, keep: np.ndarray, normals: np.ndarray):
+    """(normals (3, A), centres (3, A), variation (A,)): the planes of the neighbours
+    ``keep`` (A, k) of neighbourhoods with coordinates coords (3, A, k), their mean and
+    surface variation about the new plane: TRIM_STEPS steps of inverse iteration
+    (products with the adjugate of their scatter) from the previous normals (3, A),
+    which converge at the ratio of the two least eigenvalues (a surface's normal in a
+    step, without an eigen-solve). Variation is inf where the kept neighbours lie near
+    a line (``TRIM_FLAT``): their plane is undefined."""
+    weights = keep.astype(coords.dtype)
+    ones = np.ones(weights.shape[1], weights.dtype)
+    count = weights @ ones
+    weighted = coords * weights
+    mean = weighted @ ones / count  # (3, A)
+    m = np.einsum("iak,jak->ija", weighted, coords) - mean[:, None] * mean[None] * count
+    a, b, c, d, e, f = m[0, 0], m[1, 1], m[2, 2], m[0, 1], m[0, 2], m[1, 2]
+    adjugate = np.stack([b * c - f * f, e * f - d * c, d * f - b * e,
+                         e * f - d * c, a * c - e * e, d * e - a * f,
+                         d * f - b * e, d * e - a * f, a * b - d * d]).reshape(3, 3, -1)
+    v, trace = normals, a + b + c
+    for step in range(TRIM_STEPS):
+        v = np.einsum("ija,ja->ia", adjugate, v)
+        length = np.sqrt(np.einsum("ia,ia->a", v, v))
+        if step == 0:
+            flat = length > TRIM_FLAT * trace * trace
+        v = v / np.where(length > 0, length, 1.0)
+    variation = np.einsum("ia,ija,ja->a", v, m, v) / np.where(flat, trace, 1.0)
+    return v, mean, np.where(flat, variation, np.inf)
+
+
+def smallest_eigenvectors(cov: np.ndarray, values: bool = False):
     """Unit eigenvectors (B, 3) of the smallest eigenvalue of symmetric 3 x 3 matrices
     cov (B, 3, 3), in closed form: the eigenvalue by the trigonometric solution of the
     characteristic cubic, the vector as the largest cross product of two rows of
@@ -523,7 +647,7 @@ def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
     repeated the cross products vanish and the direction is ill-defined: those rows fall
     back to ``eigh``. All on (B,) element arrays: NumPy's batched det/cross and its
     reductions over an axis of 3 were slow (the lengths' sum and argmax: 5.1 -> 2.7 ms
-    on 21k matrices, the same bits).
+    on 21k matrices, the same bits). With ``values``: (vectors, smallest eigenvalues (B,)).
     """
     a, b, c = (np.ascontiguousarray(cov[:, i, i]) for i in range(3))
     d, e, f = (np.ascontiguousarray(cov[:, i, j]) for i, j in ((0, 1), (0, 2), (1, 2)))
@@ -551,7 +675,7 @@ def smallest_eigenvectors(cov: np.ndarray) -> np.ndarray:
     unclear = best <= 1e-8 * scale * scale
     if unclear.any():  # eigh sorts eigenvalues ascending: column 0
         out[unclear] = np.linalg.eigh(cov[unclear])[1][:, :, 0]
-    return out
+    return (out, smallest) if values else out
 
 
 def _cross(u, v):

@@ -137,6 +137,68 @@ def test_closed_form_smallest_eigenvectors_match_eigh():
         assert np.all(agree > np.cos(np.radians(1e-3)))
 
 
+def _contaminated_hood(rng, offset=0.0):
+    """Points (16, 3) about (offset, 0, 0): the first 14 on the plane z = 0 (noise 1e-3),
+    2 outliers 0.3-0.6 above it; neighbours (1, 16) of the first."""
+    plane = np.c_[rng.uniform(-1, 1, (14, 2)), rng.normal(0, 1e-3, 14)]
+    plane[0] = 0.0
+    above = np.c_[rng.uniform(-1, 1, (2, 2)), rng.uniform(0.3, 0.6, 2)]
+    return np.r_[plane, above] + [offset, 0.0, 0.0], np.arange(16)[None]
+
+
+def test_trimmed_normals_ignore_a_minority_of_outlying_neighbours():
+    # Plain PCA is pulled off by 2 outliers among 16 neighbours; the trimmed passes
+    # refit on the neighbours near the plane and find it nearly always (a plane tilted
+    # far enough can keep an outlier), far from the origin as well.
+    from jaxfit.normals import pca_normals
+
+    rng = np.random.default_rng(0)
+    for offset in (0.0, 1e6):
+        hoods = [_contaminated_hood(rng, offset) for _ in range(50)]
+        plain = np.array([_angles(pca_normals(p, h, 0), UP[None])[0] for p, h in hoods])
+        trimmed = np.array([_angles(pca_normals(p, h), UP[None])[0] for p, h in hoods])
+        assert np.median(plain) > 3.0, np.median(plain)
+        assert np.median(trimmed) < 0.1 and np.mean(trimmed < 0.5) >= 0.9, trimmed
+
+
+def test_clean_surfaces_are_not_trimmed():
+    # Where no neighbourhood's surface variation reaches TRIM_VARIATION, the trimmed
+    # passes leave every normal as plain PCA gives it, bit for bit.
+    from jaxfit.normals import knn, pca_normals
+
+    points, _ = _cloud(SHAPES["sphere"], noise=0.001)
+    hood = knn(points, 16)
+    np.testing.assert_array_equal(pca_normals(points, hood), pca_normals(points, hood, 0))
+    contaminated = np.r_[points, np.random.default_rng(1).uniform(-1, 1, (400, 3))
+                         + SHAPES["sphere"].center]
+    hood = knn(contaminated, 16)
+    changed = np.any(pca_normals(contaminated, hood) != pca_normals(contaminated, hood, 0),
+                     axis=1)
+    assert 0 < changed.mean() < 0.9, changed.mean()
+
+
+def test_trimming_finds_no_plane_where_the_near_neighbours_lie_on_a_line():
+    # 9 of 16 neighbours (the point itself among them) on the x axis, in the previous
+    # plane z = 0 through their mean: the median distance is 0, the kept neighbours are
+    # those 9, whose plane is undefined (variation inf: the previous plane stays).
+    # Spread across y, the same 9 give the plane z = 0.
+    from jaxfit.normals import _near, _refit
+
+    rng = np.random.default_rng(2)
+    line = np.c_[np.linspace(0, 1, 9), np.zeros((9, 2))]
+    others = np.c_[rng.uniform(-1, 1, (7, 2)), rng.uniform(0.2, 0.5, 7)]
+    coords = np.r_[line, others].T[:, None, :]  # (3, 1, 16)
+    near = _near(coords, UP[:, None], coords[:, :, :9].mean(axis=2))
+    np.testing.assert_array_equal(near[0], np.arange(16) < 9)
+    assert _refit(coords, near, UP[:, None])[2][0] == np.inf
+    coords[1, 0, 1:9] = rng.uniform(-0.3, 0.3, 8)
+    tilted = np.array([[0.1], [0.0], [1.0]]) / np.hypot(0.1, 1.0)
+    normal, mean, variation = _refit(coords, near, tilted)
+    np.testing.assert_allclose(np.abs(normal[:, 0]), UP, atol=1e-9)
+    np.testing.assert_allclose(mean[:, 0], coords[:, 0, :9].mean(axis=1))
+    assert variation[0] < 1e-12
+
+
 def test_batched_normals_equal_one_cloud_at_a_time(monkeypatch):
     """fit_batch estimates all clouds' normals in one call: same normals as one call per
     cloud, whatever the neighbourhood sizes, however the blocks split the clouds and
