@@ -576,21 +576,25 @@ def _shifted(columns: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     return coords
 
 
-def _moments(x, y, z):
+def _moments(x, y, z, weights=None):
     """(centres (3,) of (B,), scatter (xx, yy, zz, xy, xz, yz) of (B,)) of neighbourhoods
-    with coordinates x, y, z (B, k) each, from sums of products of coordinate arrays
-    (faster than centring and an einsum over (B, k, 3); the row sums as products with
-    a vector of ones, several times faster than ``sum(axis=1)`` over short rows)."""
+    with coordinates x, y, z (B, k) each, neighbour j of row b weighted by
+    weights[b, j] (default 1), from sums of products of coordinate arrays (faster than
+    centring and an einsum over (B, k, 3); the row sums as products with a vector of
+    ones, several times faster than ``sum(axis=1)`` over short rows)."""
     ones = np.ones(x.shape[1], x.dtype)
-    count = float(x.shape[1])
-    sx, sy, sz = x @ ones, y @ ones, z @ ones
+    if weights is None:
+        count, wx, wy, wz = float(x.shape[1]), x, y, z
+    else:
+        count, wx, wy, wz = weights @ ones, x * weights, y * weights, z * weights
+    sx, sy, sz = wx @ ones, wy @ ones, wz @ ones
 
-    def scatter(u, v, su, sv):
-        return np.einsum("bk,bk->b", u, v) - su * sv / count
+    def scatter(wu, v, su, sv):
+        return np.einsum("bk,bk->b", wu, v) - su * sv / count
 
     return (sx / count, sy / count, sz / count), (
-        scatter(x, x, sx, sx), scatter(y, y, sy, sy), scatter(z, z, sz, sz),
-        scatter(x, y, sx, sy), scatter(x, z, sx, sz), scatter(y, z, sy, sz))
+        scatter(wx, x, sx, sx), scatter(wy, y, sy, sy), scatter(wz, z, sz, sz),
+        scatter(wx, y, sx, sy), scatter(wx, z, sx, sz), scatter(wy, z, sy, sz))
 
 
 def _near(coords: np.ndarray, normals: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -617,13 +621,8 @@ def _refit(coords: np.ndarray, keep: np.ndarray, normals: np.ndarray):
     which converge at the ratio of the two least eigenvalues (a surface's normal in a
     step, without an eigen-solve). Variation is inf where the kept neighbours lie near
     a line (``TRIM_FLAT``): their plane is undefined."""
-    weights = keep.astype(coords.dtype)
-    ones = np.ones(weights.shape[1], weights.dtype)
-    count = weights @ ones
-    weighted = coords * weights
-    mean = weighted @ ones / count  # (3, A)
-    m = np.einsum("iak,jak->ija", weighted, coords) - mean[:, None] * mean[None] * count
-    a, b, c, d, e, f = m[0, 0], m[1, 1], m[2, 2], m[0, 1], m[0, 2], m[1, 2]
+    mean, scatter = _moments(*coords, keep.astype(coords.dtype))
+    a, b, c, d, e, f = scatter  # (xx, yy, zz, xy, xz, yz)
     adjugate = np.stack([b * c - f * f, e * f - d * c, d * f - b * e,
                          e * f - d * c, a * c - e * e, d * e - a * f,
                          d * f - b * e, d * e - a * f, a * b - d * d]).reshape(3, 3, -1)
@@ -634,8 +633,8 @@ def _refit(coords: np.ndarray, keep: np.ndarray, normals: np.ndarray):
         if step == 0:
             flat = length > TRIM_FLAT * trace * trace
         v = v / np.where(length > 0, length, 1.0)
-    variation = np.einsum("ia,ija,ja->a", v, m, v) / np.where(flat, trace, 1.0)
-    return v, mean, np.where(flat, variation, np.inf)
+    variation = np.einsum("ai,aij,aj->a", v.T, _scatter_matrices(*scatter), v.T)
+    return v, np.stack(mean), np.where(flat, variation / np.where(flat, trace, 1.0), np.inf)
 
 
 def smallest_eigenvectors(cov: np.ndarray, values: bool = False):
