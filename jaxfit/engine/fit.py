@@ -171,7 +171,8 @@ def result(cls: type[Model], cloud: Cloud, theta, drawn, status,
     unit_threshold = cloud.threshold / cloud.scale
     theta = np.asarray(theta, np.float64)
     agree = agreeing(cls, theta, cloud)
-    model = bounded(cls, theta, cloud.unit, unit_threshold, True if agree is None else agree)
+    model = bounded(cls, theta, cloud.unit, unit_threshold, True if agree is None else agree,
+                    cloud.columns)
     if agree is not None:  # (the gate, as the distance below, on the bounded primitive)
         agree = np.abs(model.normal_cosines(cloud.unit, cloud.normals)) >= cloud.bounds.normal_cos
     model = model.rescaled(cloud.scale, cloud.center)
@@ -275,7 +276,7 @@ def refitted(cls: type[Model], clouds: list[Cloud], thetas, options: FitOptions)
     out = np.array(thetas, np.float64)
     for j, cloud in enumerate(clouds):
         if len(cloud.points) > FINAL_MIN_POINTS and np.all(np.isfinite(out[j])):
-            out[j] = final_refit(cls, out[j], *_refit_args(cloud))[0]
+            out[j] = final_refit(cls, out[j], *_refit_args(cloud), columns=cloud.columns)[0]
     return out
 
 
@@ -286,7 +287,7 @@ def polished(cls: type[Model], cloud: Cloud, starts):
     args = _refit_args(cloud)
     for start in np.asarray(starts, np.float64):
         if np.all(np.isfinite(start)):
-            theta, cost, _ = host_lo(cls, start, *args)
+            theta, cost, _ = host_lo(cls, start, *args, columns=cloud.columns)
             if cost < lowest:
                 best, lowest = theta, cost
     return best
@@ -306,14 +307,16 @@ def agreeing(cls: type[Model], theta, cloud: Cloud):
     without a gate (every point passes)."""
     if not cloud.gated:
         return None
-    _, slope = cls.residual_slope(theta, tuple(cloud.unit.T), tuple(cloud.normals.T), np)
+    _, slope = cls.residual_slope(theta, tuple(cloud.columns), tuple(cloud.normals.T), np)
     return np.abs(slope) >= cloud.bounds.normal_cos
 
 
-def bounded(cls: type[Model], theta, unit, unit_threshold, agree=True):
+def bounded(cls: type[Model], theta, unit, unit_threshold, agree=True, columns=None):
     """The bounded model from a hypothesis, in the normalised frame (float64), bounded by
-    the points near its surface (and passing the normal gate, ``agree`` (N,))."""
-    residual = cls.theta_residual(theta, (unit[:, 0], unit[:, 1], unit[:, 2]), np)
+    the points unit (N, 3) near its surface (and passing the normal gate, ``agree``
+    (N,)); ``columns``: unit.T (3, N) where the caller has it (contiguous reads)."""
+    q = tuple(columns) if columns is not None else (unit[:, 0], unit[:, 1], unit[:, 2])
+    residual = cls.theta_residual(theta, q, np)
     inliers = np.abs(residual) < unit_threshold
     if agree is not True:
         inliers &= agree

@@ -9,6 +9,7 @@ the defaults of ``LevenbergMarquardt`` (how they were chosen: docs/engine.md).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 from functools import partial
 
@@ -369,9 +370,16 @@ def host_canonical(cls: type[Model]):
     """theta (P,) -> theta (P,): ``cls.canonicalize`` in NumPy float64, or None for a
     shape whose ``canonicalize`` takes no ``xp`` (then the final refit leaves its fits
     alone)."""
-    if "xp" not in inspect.signature(cls.canonicalize).parameters:
+    if not _projects_in_numpy(cls):
         return None
     return lambda theta: cls.canonicalize(np.asarray(theta, np.float64), np)
+
+
+@functools.cache
+def _projects_in_numpy(cls: type[Model]) -> bool:
+    """Whether ``cls.canonicalize`` takes ``xp`` (kept per class: reading a signature
+    cost ~0.1 ms, a tenth of a refit at 1e4 points)."""
+    return "xp" in inspect.signature(cls.canonicalize).parameters
 
 
 def _chunks(n: int):
@@ -429,7 +437,7 @@ def _evaluate(cls, theta, columns, threshold, normals, normal_cos, canonical=Non
 
 def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
                 normals=None, steps: int = FINAL_STEPS, widen: float = 1.0,
-                min_gain: float = FINAL_GAIN):
+                min_gain: float = FINAL_GAIN, columns=None):
     """A least-squares refit of theta (P,) on all the inliers of points (N, 3), in float64
     NumPy (no compiled program): Gauss-Newton steps on the residuals of the current
     inliers (Levenberg-damped on a refusal), each kept only if the MSAC cost over all
@@ -444,6 +452,8 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
     is unit only to ~1e-7, the differences' own step, and had made the Jacobian noise).
     ``widen``: each step fits the points within that many thresholds (LO's band,
     ``host_lo``); ``min_gain``: the relative fall in cost below which it stops.
+    ``columns``: points.T as contiguous rows (3, N), where the caller has them
+    (``Cloud.columns``): the transposed copy is then not made again.
     Returns (theta (P,), its MSAC cost, the cost of the projected theta given); theta
     unchanged when it is not finite or the shape has no NumPy projection.
     """
@@ -451,7 +461,9 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
     canonical = host_canonical(cls)
     if not np.all(np.isfinite(theta)) or canonical is None:
         return theta, np.inf, np.inf
-    args = (np.ascontiguousarray(np.asarray(points).T), threshold,
+    if columns is None:
+        columns = np.ascontiguousarray(np.asarray(points).T)
+    args = (columns, threshold,
             None if normals is None else np.ascontiguousarray(np.asarray(normals).T),
             None if normals is None else float(bounds.normal_cos))
     theta = canonical(theta)
@@ -481,20 +493,25 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
     return theta, cost, start
 
 
-def host_lo(cls: type[Model], theta, points, threshold: float, bounds=None, normals=None):
+def host_lo(cls: type[Model], theta, points, threshold: float, bounds=None, normals=None,
+            columns=None):
     """LO-RANSAC's refit of a hypothesis theta (P,), on the host (no compiled program):
     ``final_refit``'s steps on the points within ``LO_WIDEN`` thresholds (each step
     recomputes them, as an LO round does, for up to ``LO_ROUNDS`` steps), then on its
     inliers where they sit well inside the threshold (``narrows``); arguments and return
     as ``final_refit``'s. For one-off fits in a fresh process, where compiling LO's
     program costs more than all its rounds."""
+    if columns is None:
+        columns = np.ascontiguousarray(np.asarray(points).T)
     theta, cost, start = final_refit(cls, theta, points, threshold, bounds, normals,
-                                     steps=LO_ROUNDS, widen=LO_WIDEN, min_gain=LO_GAIN)
+                                     steps=LO_ROUNDS, widen=LO_WIDEN, min_gain=LO_GAIN,
+                                     columns=columns)
     if np.all(np.isfinite(theta)):
-        q = tuple(np.asarray(points).T)
+        q = tuple(columns)
         r = cls.theta_residual(theta, q, np)
         live = True if normals is None else np.abs(cls.residual_slope(
             theta, q, tuple(normals.T), np)[1]) >= bounds.normal_cos
         if narrows(r, live, threshold):
-            theta, cost, _ = final_refit(cls, theta, points, threshold, bounds, normals)
+            theta, cost, _ = final_refit(cls, theta, points, threshold, bounds, normals,
+                                         columns=columns)
     return theta, cost, start

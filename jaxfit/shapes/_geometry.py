@@ -197,6 +197,16 @@ def column_bounds(points):
     return columns.min(axis=1), columns.max(axis=1)
 
 
+def rows(columns):
+    """columns (D, N) as a C-contiguous (N, D) array: one strided write per column, where
+    ``np.ascontiguousarray(columns.T)`` copies element by element (1e5 points: 0.1 against
+    0.36 ms); the same values."""
+    out = np.empty(columns.shape[::-1], dtype=columns.dtype)
+    for j, column in enumerate(columns):
+        out[:, j] = column
+    return out
+
+
 def median(values):
     """np.median () of a 1-D array (N,) by one partition at one rank, without np.median's
     general-axis machinery (docs/shapes.md); bit-identical: the mean of the two middle
@@ -282,11 +292,15 @@ def main_interval(values, gap):
     Only occupied bins are counted when there are far more bins than values (a gap far
     below the spread), so memory is O(N) for any gap."""
     v = np.asarray(values, dtype=np.float64)
-    k05, k95 = int(0.05 * (len(v) - 1)), int(0.95 * (len(v) - 1))
-    # (one partition per rank: one at both ranks took ~5x as long as the two)
-    q05, q95 = order_statistic(v, k05), order_statistic(v, k95)
-    gap = max(gap, MIN_PER_BIN * (q95 - q05) / (0.9 * len(v)))
     lo = v.min()
+    # The central 90 % can widen the bins only where the whole range can: q95 - q05 <=
+    # max - min, in floats too (rounding is monotone), so the same gap comes out, and
+    # the two partitions (~2 ms at 1e5 values) are left out where they cannot matter.
+    if not MIN_PER_BIN * (v.max() - lo) / (0.9 * len(v)) <= gap:
+        k05, k95 = int(0.05 * (len(v) - 1)), int(0.95 * (len(v) - 1))
+        # (one partition per rank: one at both ranks took ~5x as long as the two)
+        q05, q95 = order_statistic(v, k05), order_statistic(v, k95)
+        gap = max(gap, MIN_PER_BIN * (q95 - q05) / (0.9 * len(v)))
     with np.errstate(over="ignore"):  # (a gap below the spread / 1e308: one inf bin)
         cell = np.floor((v - lo) / gap)  # bin of each value (float: no int overflow)
     if cell.max() < 4 * len(v) + 16:  # few bins: count them all
