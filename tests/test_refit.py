@@ -172,6 +172,22 @@ def test_fit_returns_the_least_squares_fit_of_all_its_inliers(shape, monkeypatch
     assert np.array_equal(off.model.theta(), lo)
 
 
+def test_pseudo_solve_is_numpys_pseudo_inverse():
+    """The final refit's step, pinv(a) @ b for symmetric a by one eigendecomposition:
+    NumPy's hermitian pseudo-inverse to rounding, gauge directions (a repeated row of
+    the Jacobian) given no step."""
+    rng = np.random.default_rng(4)
+    for size in (4, 7, 12):
+        for trial in range(20):
+            jac = rng.normal(size=(size, 60)) * rng.uniform(0.01, 10.0, (size, 1))
+            if trial % 2:
+                jac[-1] = 2.0 * jac[0]
+            a, b = jac @ jac.T, rng.normal(size=size)
+            want = np.linalg.pinv(a, rcond=1e-12, hermitian=True) @ b
+            np.testing.assert_allclose(refine.pseudo_solve(a, b), want, rtol=1e-9,
+                                       atol=1e-12 * np.abs(want).max())
+
+
 def test_final_refit_option_is_checked():
     with pytest.raises(ValueError, match="final_refit must be True or False"):
         jaxfit.fit(np.random.default_rng(0).normal(size=(100, 3)), "sphere", final_refit=1)

@@ -203,6 +203,41 @@ def test_fast_host_helpers_equal_numpy():
     assert np.linalg.det(rot) > 0
 
 
+def test_large_medians_from_a_bracket_are_exact():
+    """``median`` of large arrays narrows to a bracket of a strided sample first: the
+    same value as ``np.median`` on spreads, ties, sorted and reversed runs and two far
+    clusters, and with NaNs where ``np.partition``'s order puts them last."""
+    from jaxfit.shapes import _geometry as g
+
+    rng = np.random.default_rng(7)
+    n = g.BRACKET_FROM
+    cases = [rng.normal(size=n), rng.normal(size=n + 1), rng.standard_cauchy(90_001),
+             np.sort(rng.random(50_000)), np.sort(rng.random(50_000))[::-1].copy(),
+             np.repeat(rng.random(7), 5_000), np.zeros(30_000),
+             np.r_[rng.random(30_000), 1e9 + rng.random(30_001)]]
+    for v in cases:
+        assert g.median(v) == np.median(v)
+    v = rng.normal(size=40_000)
+    v[::7] = np.nan
+    k = v.size // 2
+    part = np.partition(v, k)
+    assert g.median(v) == 0.5 * (part[:k].max() + part[k])
+
+
+def test_main_interval_skips_only_quantiles_that_cannot_widen_its_bins():
+    """The central 90 %'s quantiles are left out where the whole range shows they cannot
+    widen the bins; the interval is that of the bins they would have given."""
+    from jaxfit.shapes._geometry import MIN_PER_BIN, main_interval
+
+    rng = np.random.default_rng(2)
+    for n, gap in ((100_000, 0.01), (100_000, 1e-6), (900, 0.015), (5_000, 0.001)):
+        v = np.r_[rng.uniform(-1, 1, n), rng.uniform(2, 9, n // 50)]
+        k05, k95 = int(0.05 * (len(v) - 1)), int(0.95 * (len(v) - 1))
+        wide = MIN_PER_BIN * (np.partition(v, k95)[k95] - np.partition(v, k05)[k05]) \
+            / (0.9 * len(v))
+        assert main_interval(v, gap) == main_interval(v, max(gap, wide))
+
+
 def test_main_interval_keeps_a_sparse_run_whole():
     """Bins 5 thresholds wide held ~7 of 900 uniform values each, and a chance gap cut the
     run to (-0.80, 0.38) of (-1, 1) (a 1e3-point cylinder's height at a tight threshold);
