@@ -23,7 +23,6 @@ Run: ``python -m benchmarks.solution [--quick]``. Writes
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import math
 import os
@@ -50,7 +49,7 @@ SHAPES = ("plane", "sphere", "cylinder")
 SIZES = (1_000, 10_000, 100_000)
 OUTLIERS = (0.1, 0.3, 0.6)
 BATCH_SIZES = (64, 128, 256, 512, 1024)
-DEFAULT_BATCH = inspect.signature(jaxfit.fit).parameters["batch_size"].default
+DEFAULT_BATCH = jaxfit.FitOptions().batch_size
 NO_REFINE_BATCHES = (128, 1024)  # also timed with refine=False
 NOISE = 0.005  # half-width of the surface noise, unit-size primitives
 THRESHOLD = 0.01  # inlier distance for every method: twice the noise half-width

@@ -4,6 +4,7 @@ For each primitive, N in {1e3, 1e4, 1e5, 1e6} and H in {1024, 4096}, the same H
 hypotheses are sampled,
 estimated and MSAC-scored three ways, side by side in one run:
 - jaxfit: one call of the jitted kernel (sample -> vmap'd estimate -> chunked scoring),
+  every hypothesis scored on every point (``full_scoring``: no screen on a subset),
   warm (compiled beforehand), best of 9 calls;
 - reference, vectorised: NumPy estimates, then the hypotheses scored at once in blocks
   (at most 1e8 evaluations timed, reported per evaluation), best of 3;
@@ -27,9 +28,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxfit
+from jaxfit.engine import backend
 from jaxfit.engine.cloud import normalise
 from jaxfit.engine.cloud import padded as pad
-from jaxfit.engine.kernel import SUPPORT, batch_best
+from jaxfit.engine.kernel import SUPPORT, estimate_batch
+from jaxfit.engine.sampling import draw_samples
+from jaxfit.engine.scoring import score
 from jaxfit.evaluation import reference
 from jaxfit.evaluation.synthetic import demo_cloud
 from jaxfit.io.preview import pyplot
@@ -49,6 +53,24 @@ def _seconds(fn, repeats):
     return min(times)
 
 
+def full_scoring(cls, hypotheses: int):
+    """The kernel's stages (its sampler, the vmap'd thesis estimator, the chunked MSAC
+    scan, the fit's CPU options) with every hypothesis scored once on every point:
+    (points (B, 3), n, key, threshold) -> costs (H,). Above ``SCREEN_POINTS`` points the
+    fit's kernel scores all H on a spread subset and only its best few on all, so H x N
+    would overstate what that kernel evaluates."""
+
+    def costs(points, n, key, threshold):
+        key_sample, key_support = jax.random.split(key)
+        idx, distinct = draw_samples(key_sample, n, hypotheses, cls.sample_size)
+        support = points[jax.random.randint(key_support, (SUPPORT,), 0, n)]
+        thetas, valid = estimate_batch(cls, points[idx], support)
+        return score(cls, thetas, valid & distinct, points, n, threshold, counts=False)
+
+    options = {"compiler_options": backend.CPU_OPTIONS} if backend.on_cpu() else {}
+    return jax.jit(costs, **options)
+
+
 def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int = 0,
             vec_hypotheses: int | None = None) -> dict:
     cls = REGISTRY[name]
@@ -59,9 +81,10 @@ def measure(name: str, n: int, hypotheses: int, loop_hypotheses: int, seed: int 
     padded = pad(unit, np.float32)
     key = jax.random.key(seed)
     thr = jnp.float32(threshold)
+    scoring = full_scoring(cls, hypotheses)
 
     def kernel():
-        jax.block_until_ready(batch_best(cls, hypotheses, padded, n, key, thr))
+        jax.block_until_ready(scoring(padded, n, key, thr))
 
     kernel()  # compile
     t_jax = _seconds(kernel, 9)
