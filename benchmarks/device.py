@@ -107,7 +107,7 @@ def markdown(meta, rows) -> str:
            "once first, its seconds in the *first* columns; cache folder "
            f"{meta['cache']}).", "",
            "## Throughput (kernel, H = 4096; NumPy vectorised on the host CPU)", "",
-           "| shape | N | jaxfit evals/s | NumPy evals/s | ratio | first s |",
+           "| shape | N | jaxfit evals/s | NumPy evals/s | ratio | s, all of its runs |",
            "|---|---|---|---|---|---|"]
     out += [f"| {r['shape']} | {r['N']} | {r['jaxfit_evals_per_s']:.3g} | "
             f"{r['numpy_vectorised_evals_per_s']:.3g} | {r['speedup_vs_vectorised']:.0f}x | "
