@@ -104,7 +104,7 @@ def markdown(meta, rows) -> str:
            f"`python -m benchmarks.device{' --quick' if meta['quick'] else ''}` "
            f"({meta['when']}; JAX {meta['jax']} on {meta['backend']}, host "
            f"{meta['host']}, {meta['cpus']} CPUs; compile excluded: each program called "
-           "once first, its seconds in the *first* columns; cache folder "
+           "once first, the first fit's seconds in its own column; cache folder "
            f"{meta['cache']}).", "",
            "## Throughput (kernel, H = 4096; NumPy vectorised on the host CPU)", "",
            "| shape | N | jaxfit evals/s | NumPy evals/s | ratio | s, all of its runs |",
