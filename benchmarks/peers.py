@@ -617,6 +617,60 @@ def markdown(single_rows, scene_rows, meta) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Each verdict's colour in ``plot``.
+COLOURS = {"ahead": "#4caf50", "faster, less accurate": "#ffd54f",
+           "slower, more accurate": "#ff9800", "behind": "#e53935", "peer failed": "#90a4ae"}
+#: A scene's verdict (``scene_verdict``) in the same colours.
+SCENE_COLOURS = {"ahead": COLOURS["ahead"], "slower": COLOURS["slower, more accurate"],
+                 "finds fewer": COLOURS["faster, less accurate"], "behind": COLOURS["behind"]}
+
+
+def plot(single_rows, scene_rows, path) -> None:
+    """The verdicts as a grid (PNG at ``path``): a row per setting, a column per peer,
+    each cell coloured by ``verdict`` and labelled with jaxfit's time over the peer's;
+    the scenes against CGAL beside it."""
+    from jaxfit.io.preview import pyplot
+
+    plt = pyplot()
+    peers = [(m, name) for m, name in _PEERS
+             if any(m in r["methods"] for r in single_rows)]
+    fig, (grid, side) = plt.subplots(1, 2, figsize=(10, 0.3 * len(single_rows) + 2),
+                                     gridspec_kw={"width_ratios": [len(peers), 1.3]})
+    for i, row in enumerate(single_rows):
+        for j, (m, _) in enumerate(peers):
+            cell = row["methods"].get(m)
+            if cell is None:
+                continue
+            grid.add_patch(plt.Rectangle((j, i), 1, 1, color=COLOURS[verdict(
+                row["methods"]["jaxfit"], cell)], ec="white"))
+            grid.text(j + 0.5, i + 0.5, f"{cell['ratio']:.2f}", ha="center", va="center",
+                      fontsize=8)
+    grid.set(xlim=(0, len(peers)), ylim=(len(single_rows), 0),
+             xticks=np.arange(len(peers)) + 0.5, yticks=np.arange(len(single_rows)) + 0.5)
+    grid.set_xticklabels([name for _, name in peers], fontsize=8)
+    grid.set_yticklabels([f"{r['shape']} {r['points']:.0e} {int(100 * r['outliers'])} %"
+                          for r in single_rows], fontsize=8)
+    grid.set_title("jaxfit time / peer time (colour: the issue's verdict)", fontsize=9)
+    rows = [r for r in scene_rows if "cgal" in r["methods"]]
+    for i, row in enumerate(rows):
+        ratio = row["methods"]["jaxfit"]["s"] / row["methods"]["cgal"]["s"]
+        side.add_patch(plt.Rectangle((0, i), 1, 1, ec="white",
+                                     color=SCENE_COLOURS[scene_verdict(row)]))
+        side.text(0.5, i + 0.5, f"{ratio:.2f}", ha="center", va="center", fontsize=8)
+    side.set(xlim=(0, 1), ylim=(max(len(rows), 1), 0), xticks=[0.5],
+             yticks=np.arange(len(rows)) + 0.5)
+    side.set_xticklabels(["CGAL"], fontsize=8)
+    side.set_yticklabels([r["scene"].split(" (")[0] for r in rows], fontsize=8)
+    side.yaxis.tick_right()
+    side.set_title("detect", fontsize=9)
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in COLOURS.values()]
+    fig.legend(handles, list(COLOURS), loc="lower center", ncol=len(COLOURS), fontsize=8,
+               frameon=False)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true",
@@ -624,7 +678,15 @@ def main(argv=None):
     parser.add_argument("--refit", action="store_true",
                         help="only jaxfit's errors against N with the final refit on and off")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--render", action="store_true",
+                        help="only draw the report and its picture again from peers.json")
     args = parser.parse_args(argv)
+    if args.render:
+        saved = json.loads((args.out / "peers.json").read_text())
+        (args.out / "peers.md").write_text(markdown(saved["single"], saved["scenes"],
+                                                    saved["meta"]))
+        plot(saved["single"], saved["scenes"], args.out / "peers.png")
+        return
     if args.refit:
         rows = refit_table()
         args.out.mkdir(parents=True, exist_ok=True)
@@ -657,6 +719,7 @@ def main(argv=None):
         {"meta": meta, "single": single_rows, "scenes": scene_rows,
          "verdicts": verdicts(single_rows, scene_rows)}, indent=1))
     (args.out / f"{name}.md").write_text(markdown(single_rows, scene_rows, meta))
+    plot(single_rows, scene_rows, args.out / f"{name}.png")
     print((args.out / f"{name}.md").read_text())
 
 
