@@ -217,6 +217,13 @@ def test_large_medians_from_a_bracket_are_exact():
              np.r_[rng.random(30_000), 1e9 + rng.random(30_001)]]
     for v in cases:
         assert g.median(v) == np.median(v)
+    # An even count's lower middle is the largest value of the partition's lower part,
+    # not the value just left of the split (which it is only most of the time).
+    for _ in range(600):
+        size = 2 * int(rng.integers(n // 2, 20_000))
+        v = rng.normal(size=size) if rng.random() < 0.7 else \
+            rng.integers(0, 50, size).astype(float)
+        assert g.median(v) == np.median(v)
     v = rng.normal(size=40_000)
     v[::7] = np.nan
     k = v.size // 2

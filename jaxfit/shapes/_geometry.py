@@ -234,13 +234,14 @@ BRACKET_SAMPLE = 1024
 
 
 def _middle(v, k: int):
-    """(values of v (N,) float64 that rank below k (at least one, k >= 1, unless k = 0),
-    the k-th smallest value): ``np.partition(v, k)``'s ``[:k]`` and ``[k]`` where the
-    lower part is only read by its maximum (the (k-1)-th smallest), so a part of it
-    holding that maximum serves. For a large v the two ranks are first bracketed between
-    two values of a strided sample: the values between them are partitioned alone, and
-    the same order statistics come out (NaN counts as the largest value, as in a
-    partition); a bracket that misses the ranks falls back to the whole partition."""
+    """(values of v (N,) float64 that rank below k, the k-th smallest value):
+    ``np.partition(v, k)``'s ``[:k]`` and ``[k]``, or for a large v a part of ``[:k]``
+    that holds its maximum (the (k-1)-th smallest; a partition leaves it anywhere in
+    ``[:k]``). The two ranks are then first bracketed between two values of a strided
+    sample, and only the values between them are partitioned: the values below the
+    bracket are all smaller than any inside it. The same order statistics come out (NaN
+    counts as the largest value, as in a partition); a bracket that misses the ranks
+    falls back to the whole partition."""
     if v.size >= BRACKET_FROM and k >= 1:
         sample = np.sort(v[::v.size // BRACKET_SAMPLE])
         at = k * len(sample) // v.size  # the ranks' place in the sample, +- 4 sigma:
@@ -250,7 +251,7 @@ def _middle(v, k: int):
         inside = v[(v >= lo) & (v <= hi)]
         if under <= k - 1 and k < under + inside.size:
             part = np.partition(inside, k - under)
-            return part[max(k - under - 1, 0):k - under], part[k - under]
+            return part[:k - under], part[k - under]
     part = np.partition(v, k)
     return part[:k], part[k]
 
