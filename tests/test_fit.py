@@ -163,6 +163,27 @@ def test_sample_indices_are_exactly_floor_of_bits_times_n():
     assert np.asarray(uniform_indices(jax.numpy.asarray(words[-1:]), 7))[0] == 6
 
 
+def test_flat_draws_are_the_kernels_2d_draws():
+    # The kernel draws its (H, k) sample words and the box's (G, M) support flat and
+    # reshapes them (a smaller program): the same values as the 2-d draws for threefry
+    # keys, under vmap and with the partitionable numbering off too; an rbg key draws
+    # the 2-d shape itself.
+    from jaxfit.engine.sampling import flat_draw
+
+    bits = lambda k, shape: jax.random.bits(k, shape, jax.numpy.uint32)  # noqa: E731
+    randint = lambda k, shape: jax.random.randint(k, shape, 0, 1009)  # noqa: E731
+    keys = jax.random.split(jax.random.key(7), 3)
+    for partitionable in (True, False):
+        with jax.threefry_partitionable(partitionable):
+            for draw in (bits, randint):
+                for shape in [(256, 2), (256, 3), (512, 4), (16, 256)]:
+                    flat = jax.vmap(lambda k: flat_draw(draw, k, shape))(keys)  # noqa: B023
+                    np.testing.assert_array_equal(
+                        flat, jax.vmap(lambda k: draw(k, shape))(keys))  # noqa: B023
+    other = jax.random.key(7, impl="rbg")
+    np.testing.assert_array_equal(flat_draw(bits, other, (256, 3)), bits(other, (256, 3)))
+
+
 def test_status_reports_why_the_loop_stopped():
     points, _, _ = demo_cloud("sphere", seed=2)
     assert jaxfit.fit(points, "sphere").status is Status.CONVERGED

@@ -8,9 +8,12 @@ with a ``draw`` of the same contract.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
+
+from .keys import THREEFRY
 
 
 class Sampler:
@@ -39,13 +42,24 @@ DEFAULT_SAMPLER = UniformSampler()
 def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     """Indices (H, k) of H minimal samples among the first n_valid points, drawn in O(k)
     each (with replacement), and whether each sample's indices are distinct (H,)."""
-    idx = uniform_indices(jax.random.bits(key, (batch_size, sample_size), jnp.uint32),
-                          n_valid)
+    idx = uniform_indices(flat_draw(jax.random.bits, key, (batch_size, sample_size),
+                                    jnp.uint32), n_valid)
     distinct = jnp.ones(batch_size, bool)
     for i in range(sample_size):
         for j in range(i + 1, sample_size):
             distinct &= idx[:, i] != idx[:, j]
     return idx, distinct
+
+
+def flat_draw(draw, key, shape: tuple, *args):
+    """``draw(key, shape, *args)`` of a ``jax.random`` sampler (``bits``, ``randint``),
+    drawn as one flat array and reshaped where that gives the same values: a threefry
+    key numbers its words by their flat index, and a 2-d draw's index arithmetic had
+    doubled the compile of the kernel's draws (docs/engine.md, "Session 34"). Other
+    PRNGs draw ``shape`` itself."""
+    if len(shape) < 2 or jax.random.key_impl(key) != THREEFRY:
+        return draw(key, shape, *args)
+    return draw(key, (math.prod(shape),), *args).reshape(shape)
 
 
 def uniform_indices(bits, n):
