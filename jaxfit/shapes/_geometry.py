@@ -129,20 +129,30 @@ JACOBI_SWEEPS = 5
 def smallest_eigenvector(a):
     """The unit eigenvector (3,) of the least eigenvalue of a symmetric (3, 3) matrix a
     (JAX), by cyclic Jacobi rotations: no LAPACK call (``jnp.linalg.eigh`` is one on the
-    CPU). Sign arbitrary; for a repeated least eigenvalue any vector of its space."""
+    CPU). Sign arbitrary; for a repeated least eigenvalue any vector of its space.
+
+    Each rotation updates the entries it changes, as scalars (one elementwise fusion per
+    sweep, where the rotation matrices' products were nine dots and a quarter of the
+    plane's refinement program: docs/engine.md, "Session 34")."""
 
     def rotate(m, v, i, j):
-        # The rotation in the (i, j) plane that zeroes m[i, j] (Golub & Van Loan 8.5.2).
+        # The rotation P in the (i, j) plane that zeroes m[i, j], m <- P^T m P and
+        # v <- v P (Golub & Van Loan 8.5.2; P[i, i] = P[j, j] = c, P[i, j] = s = -P[j, i]).
+        # m: the dict of the upper triangle's entries, v: the columns' dict of rows.
+        k = 3 - i - j  # (the third index)
+        mij = m[i, j]
         tau = m[j, j] - m[i, i]
-        denominator = jnp.abs(tau) + jnp.sqrt(tau * tau + 4.0 * m[i, j] * m[i, j])
-        t = jnp.where(denominator > 0, 2.0 * m[i, j] * jnp.where(tau >= 0, 1.0, -1.0)
+        denominator = jnp.abs(tau) + jnp.sqrt(tau * tau + 4.0 * mij * mij)
+        t = jnp.where(denominator > 0, 2.0 * mij * jnp.where(tau >= 0, 1.0, -1.0)
                       / jnp.where(denominator > 0, denominator, 1.0), 0.0)
         c = 1.0 / jnp.sqrt(1.0 + t * t)
         s = t * c
-        e = jnp.eye(3, dtype=m.dtype)
-        rot = (e + (c - 1.0) * (jnp.outer(e[i], e[i]) + jnp.outer(e[j], e[j]))
-               + s * (jnp.outer(e[i], e[j]) - jnp.outer(e[j], e[i])))
-        return rot.T @ m @ rot, v @ rot
+        ik, jk = _pair(i, k), _pair(j, k)
+        m = {**m, (i, i): m[i, i] - t * mij, (j, j): m[j, j] + t * mij,
+             (i, j): jnp.zeros_like(mij), ik: c * m[ik] - s * m[jk],
+             jk: s * m[ik] + c * m[jk]}
+        v = {**v, i: c * v[i] - s * v[j], j: s * v[i] + c * v[j]}
+        return m, v
 
     def sweep(_, state):
         m, v = state
@@ -150,8 +160,16 @@ def smallest_eigenvector(a):
             m, v = rotate(m, v, i, j)
         return m, v
 
-    m, v = jax.lax.fori_loop(0, JACOBI_SWEEPS, sweep, (a, jnp.eye(3, dtype=a.dtype)))
-    return v[:, jnp.argmin(jnp.diagonal(m))]
+    upper = {(i, j): a[i, j] for i in range(3) for j in range(i, 3)}
+    columns = {i: jnp.eye(3, dtype=a.dtype)[:, i] for i in range(3)}
+    m, v = jax.lax.fori_loop(0, JACOBI_SWEEPS, sweep, (upper, columns))
+    diagonal = jnp.stack([m[i, i] for i in range(3)])
+    return jnp.stack([v[i] for i in range(3)], axis=1)[:, jnp.argmin(diagonal)]
+
+
+def _pair(i: int, j: int) -> tuple[int, int]:
+    """The upper-triangle key (min, max) of entry (i, j) of a symmetric matrix."""
+    return (i, j) if i <= j else (j, i)
 
 
 #: The coordinate axes, rows (read-only): ``frame``'s helpers.
