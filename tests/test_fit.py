@@ -184,6 +184,23 @@ def test_flat_draws_are_the_kernels_2d_draws():
     np.testing.assert_array_equal(flat_draw(bits, other, (256, 3)), bits(other, (256, 3)))
 
 
+def test_support_indices_are_jax_randint():
+    # The box's support indices: randint's values from one threefry over both halves of
+    # the split key, for every count (1 and 2^31 - 1 included), under vmap; rbg keys call
+    # randint itself.
+    from jaxfit.engine.sampling import randint_indices
+
+    keys = jax.random.split(jax.random.key(11), 4)
+    for n in (1, 2, 3, 1000, 2048, 65537, 1_000_003, 2**31 - 1):
+        count = jax.numpy.int32(n)
+        got = jax.jit(jax.vmap(lambda k: randint_indices(k, (16, 256), count)))(keys)  # noqa: B023
+        want = jax.vmap(lambda k: jax.random.randint(k, (16, 256), 0, count))(keys)  # noqa: B023
+        np.testing.assert_array_equal(got, want)
+    other = jax.random.key(11, impl="rbg")
+    np.testing.assert_array_equal(randint_indices(other, (4, 8), 100),
+                                  jax.random.randint(other, (4, 8), 0, 100))
+
+
 def test_status_reports_why_the_loop_stopped():
     points, _, _ = demo_cloud("sphere", seed=2)
     assert jaxfit.fit(points, "sphere").status is Status.CONVERGED

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from ..shapes import Model
 from .backend import BESIDE_OPTIONS, REFINE_OPTIONS, jit_tuned, map_leading
 from .refine import DEFAULT_REFINER, LocalOptimizer
-from .sampling import DEFAULT_SAMPLER, Sampler, flat_draw
+from .sampling import DEFAULT_SAMPLER, Sampler, randint_indices
 from .scoring import (
     CHUNK,
     DEFAULT_SCORER,
@@ -77,7 +77,7 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     # from the same 256 points, and where those missed a thin side face, all missed it.
     shape = (math.gcd(batch_size, SUPPORT_GROUPS), SUPPORT) if cls.reads_support else \
         (SUPPORT,)
-    support = points[flat_draw(jax.random.randint, key_support, shape, 0, n_valid)]
+    support = points[randint_indices(key_support, shape, n_valid)]
     thetas, valid = estimate_batch(cls, points[idx], support,
                                    normals[idx] if est.uses_normals else None, estimator)
     valid &= distinct

@@ -62,6 +62,24 @@ def flat_draw(draw, key, shape: tuple, *args):
     return draw(key, (math.prod(shape),), *args).reshape(shape)
 
 
+def randint_indices(key, shape: tuple, n):
+    """``jax.random.randint(key, shape, 0, n)`` (int32, n >= 1 traced) for a threefry key,
+    its two words per index drawn by one threefry over both halves of ``split(key)``
+    (``vmap``) where randint runs two: the same values (``flat_draw`` numbering) for a
+    smaller program. Other PRNGs call randint."""
+    if jax.random.key_impl(key) != THREEFRY:
+        return jax.random.randint(key, shape, 0, n)
+    words = jax.vmap(lambda k: jax.random.bits(k, (math.prod(shape),), jnp.uint32))(
+        jax.random.split(key))
+    # randint's reduction of the two words modulo n, as jax.random writes it
+    span = jnp.maximum(jnp.asarray(n, jnp.int32), 1).astype(jnp.uint32)
+    multiplier = jax.lax.rem(jnp.uint32(1 << 16), span)
+    multiplier = jax.lax.rem(multiplier * multiplier, span)
+    offset = jax.lax.rem(jax.lax.rem(words[0], span) * multiplier
+                         + jax.lax.rem(words[1], span), span)
+    return offset.astype(jnp.int32).reshape(shape)
+
+
 def uniform_indices(bits, n):
     """Indices in [0, n) from uniform 32-bit words ``bits`` (any shape): exactly
     floor(bits * n / 2^32), by 16-bit halves in uint32 arithmetic (no 64-bit integers
