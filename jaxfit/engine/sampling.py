@@ -63,10 +63,11 @@ def flat_draw(draw, key, shape: tuple, *args):
 
 
 def randint_indices(key, shape: tuple, n):
-    """``jax.random.randint(key, shape, 0, n)`` (int32, n >= 1 traced) for a threefry key,
-    its two words per index drawn by one threefry over both halves of ``split(key)``
+    """``jax.random.randint(key, shape, 0, n, jnp.int32)`` (n >= 1, traced) for a threefry
+    key, its two words per index drawn by one threefry over both halves of ``split(key)``
     (``vmap``) where randint runs two: the same values (``flat_draw`` numbering) for a
-    smaller program. Other PRNGs call randint."""
+    smaller program. (With x64 enabled, randint's default int64 draws other words: these
+    stay the int32 ones.) Other PRNGs call randint."""
     if jax.random.key_impl(key) != THREEFRY:
         return jax.random.randint(key, shape, 0, n)
     words = jax.vmap(lambda k: jax.random.bits(k, (math.prod(shape),), jnp.uint32))(
