@@ -18,6 +18,18 @@ import numpy as np
 
 from .._cache import stored_jit
 
+
+def cores() -> int:
+    """The cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+#: LLVM modules a program's code generation is split into, compiled in parallel: one a
+#: core. XLA's default, 32, spent more CPU on 2 cores and took longer (a kernel compiled
+#: alone 0.32 -> 0.22 s wall, a refinement ~0.08 s less CPU; docs/engine.md, "Session 34").
+CODEGEN_SPLIT = {"xla_cpu_parallel_codegen_split_count": max(2, cores())}
 #: XLA's older loop emitters in place of its MLIR fusion emitters: the kernel and the
 #: refinement compile in about 0.5-0.65 of the time and run as fast (docs/engine.md,
 #: "Session 24"), and a first fit's time is mostly their compiles.
@@ -29,6 +41,7 @@ CPU_OPTIONS = {
     "xla_cpu_prefer_vector_width": 512,
     "xla_cpu_enable_fast_min_max": True,
     **LOOP_EMITTERS,
+    **CODEGEN_SPLIT,
 }
 #: The kernel's options where its refinement compiles beside it (a fit with LO): code
 #: generation not split over the cores, which the two compiles already keep busy. A
@@ -36,7 +49,7 @@ CPU_OPTIONS = {
 #: one compile use both cores (docs/engine.md, "Session 27").
 BESIDE_OPTIONS = {**CPU_OPTIONS, "xla_cpu_parallel_codegen_split_count": 1}
 #: The refinement's XLA CPU options.
-REFINE_OPTIONS = LOOP_EMITTERS
+REFINE_OPTIONS = {**LOOP_EMITTERS, **CODEGEN_SPLIT}
 #: On the CPU the scoring kernel splits H hypotheses into this many independent loops
 #: when each gets at least BLOCK_MIN of them: XLA's CPU runtime runs independent loops
 #: side by side, but splits one loop's body over the cores only when it is large.
@@ -124,13 +137,6 @@ def placer(devices):
     mesh = jax.sharding.Mesh(np.asarray(devices), ("clouds",))
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("clouds"))
     return lambda array: jax.device_put(array, sharding)
-
-
-def cores() -> int:
-    """The cores this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
 
 
 def in_threads(fn, items, workers: int):
