@@ -27,8 +27,8 @@ def cores() -> int:
 
 
 #: LLVM modules a program's code generation is split into, compiled in parallel: one a
-#: core. XLA's default, 32, spent more CPU on 2 cores and took longer (a kernel compiled
-#: alone 0.32 -> 0.22 s wall, a refinement ~0.08 s less CPU; docs/engine.md, "Session 34").
+#: core (at least 2). XLA's default, 32, took longer and more CPU on 2 cores, at the same
+#: run time (docs/engine.md, "Session 34").
 CODEGEN_SPLIT = {"xla_cpu_parallel_codegen_split_count": max(2, cores())}
 #: XLA's older loop emitters in place of its MLIR fusion emitters: the kernel and the
 #: refinement compile in about 0.5-0.65 of the time and run as fast (docs/engine.md,

@@ -131,14 +131,14 @@ def smallest_eigenvector(a):
     (JAX), by cyclic Jacobi rotations: no LAPACK call (``jnp.linalg.eigh`` is one on the
     CPU). Sign arbitrary; for a repeated least eigenvalue any vector of its space.
 
-    Each rotation updates the entries it changes, as scalars (one elementwise fusion per
-    sweep, where the rotation matrices' products were nine dots and a quarter of the
-    plane's refinement program: docs/engine.md, "Session 34")."""
+    Each rotation updates the entries it changes, as scalars: one elementwise fusion a
+    sweep, where products of rotation matrices were nine small dots (docs/engine.md,
+    "Session 34")."""
 
     def rotate(m, v, i, j):
         # The rotation P in the (i, j) plane that zeroes m[i, j], m <- P^T m P and
         # v <- v P (Golub & Van Loan 8.5.2; P[i, i] = P[j, j] = c, P[i, j] = s = -P[j, i]).
-        # m: the dict of the upper triangle's entries, v: the columns' dict of rows.
+        # m: the upper triangle's entries keyed (row, column); v: its columns keyed by index.
         k = 3 - i - j  # (the third index)
         mij = m[i, j]
         tau = m[j, j] - m[i, i]
