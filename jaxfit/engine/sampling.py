@@ -42,8 +42,7 @@ DEFAULT_SAMPLER = UniformSampler()
 def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     """Indices (H, k) of H minimal samples among the first n_valid points, drawn in O(k)
     each (with replacement), and whether each sample's indices are distinct (H,)."""
-    idx = uniform_indices(flat_draw(jax.random.bits, key, (batch_size, sample_size),
-                                    jnp.uint32), n_valid)
+    idx = uniform_indices(words(key, (batch_size, sample_size)), n_valid)
     distinct = jnp.ones(batch_size, bool)
     for i in range(sample_size):
         for j in range(i + 1, sample_size):
@@ -51,34 +50,31 @@ def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     return idx, distinct
 
 
-def flat_draw(draw, key, shape: tuple, *args):
-    """``draw(key, shape, *args)`` of a ``jax.random`` sampler (``bits``, ``randint``),
-    drawn as one flat array and reshaped where that gives the same values: a threefry
-    key numbers its words by their flat index, and a 2-d draw's index arithmetic had
-    doubled the compile of the kernel's draws (docs/engine.md, "Session 34"). Other
-    PRNGs draw ``shape`` itself."""
+def words(key, shape: tuple):
+    """``jax.random.bits(key, shape, jnp.uint32)``, drawn as one flat array and reshaped
+    for a threefry key (the same values: it numbers its words by their flat index), where
+    a 2-d draw's index arithmetic had doubled the compile of the kernel's draws
+    (docs/engine.md, "Session 34"). Other PRNGs draw ``shape`` itself."""
     if len(shape) < 2 or jax.random.key_impl(key) != THREEFRY:
-        return draw(key, shape, *args)
-    return draw(key, (math.prod(shape),), *args).reshape(shape)
+        return jax.random.bits(key, shape, jnp.uint32)
+    return jax.random.bits(key, (math.prod(shape),), jnp.uint32).reshape(shape)
 
 
 def randint_indices(key, shape: tuple, n):
     """``jax.random.randint(key, shape, 0, n, jnp.int32)`` (n >= 1, traced) for a threefry
-    key, its two words per index drawn by one threefry over both halves of ``split(key)``
-    (``vmap``) where randint runs two: the same values (``flat_draw`` numbering) for a
-    smaller program. (With x64 enabled, randint's default int64 draws other words: these
-    stay the int32 ones.) Other PRNGs call randint."""
+    key, the ``words`` of both halves of ``split(key)`` drawn by one threefry (``vmap``)
+    where randint runs two: the same values for a smaller program. (With x64 enabled,
+    randint's default int64 draws other words: these stay the int32 ones.) Other PRNGs
+    call randint."""
     if jax.random.key_impl(key) != THREEFRY:
         return jax.random.randint(key, shape, 0, n)
-    words = jax.vmap(lambda k: jax.random.bits(k, (math.prod(shape),), jnp.uint32))(
-        jax.random.split(key))
+    high, low = jax.vmap(lambda k: words(k, shape))(jax.random.split(key))
     # randint's reduction of the two words modulo n, as jax.random writes it
     span = jnp.maximum(jnp.asarray(n, jnp.int32), 1).astype(jnp.uint32)
     multiplier = jax.lax.rem(jnp.uint32(1 << 16), span)
     multiplier = jax.lax.rem(multiplier * multiplier, span)
-    offset = jax.lax.rem(jax.lax.rem(words[0], span) * multiplier
-                         + jax.lax.rem(words[1], span), span)
-    return offset.astype(jnp.int32).reshape(shape)
+    offset = jax.lax.rem(jax.lax.rem(high, span) * multiplier + jax.lax.rem(low, span), span)
+    return offset.astype(jnp.int32)
 
 
 def uniform_indices(bits, n):

@@ -161,7 +161,8 @@ def smallest_eigenvector(a):
         return m, v
 
     upper = {(i, j): a[i, j] for i in range(3) for j in range(i, 3)}
-    columns = {i: jnp.eye(3, dtype=a.dtype)[:, i] for i in range(3)}
+    eye = jnp.eye(3, dtype=a.dtype)
+    columns = {i: eye[:, i] for i in range(3)}
     m, v = jax.lax.fori_loop(0, JACOBI_SWEEPS, sweep, (upper, columns))
     diagonal = jnp.stack([m[i, i] for i in range(3)])
     return jnp.stack([v[i] for i in range(3)], axis=1)[:, jnp.argmin(diagonal)]
