@@ -3,7 +3,7 @@ spawned worker processes import the main module again under another name."""
 
 import sys
 
-from .cli import main
+from .cli import entry
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry())

@@ -234,6 +234,29 @@ def test_version_and_help_texts(capsys):
     assert "``" not in text and "jaxfit batch" in text
 
 
+def test_entry_returns_mains_status_and_freezes_the_collector(monkeypatch, capsys, tmp_path):
+    """The command's entry point (``jaxfit``, ``python -m jaxfit``) returns ``main``'s
+    status, success or bad input, and leaves the objects frozen (``gc.freeze``), so the
+    interpreter's final collections skip them; ``main`` alone leaves the collector be."""
+    import gc
+    import sys
+
+    from jaxfit.cli import entry
+
+    gc.unfreeze()
+    try:
+        assert main(["--version"]) == 0 and gc.get_freeze_count() == 0
+        monkeypatch.setattr(sys, "argv", ["jaxfit", "--version"])
+        assert entry() == 0 and gc.get_freeze_count() > 0
+        gc.unfreeze()
+        missing = str(tmp_path / "missing.npy")
+        monkeypatch.setattr(sys, "argv", ["jaxfit", "fit", missing, "--shape", "plane"])
+        assert entry() == 2 and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+    assert "missing.npy" in capsys.readouterr().err
+
+
 def test_demo_fit_honours_out(tmp_path, capsys):
     """demo --shape S --out DIR writes the fit's JSON and mesh there (it ignored --out)."""
     assert main(["demo", "--shape", "sphere", "--out", str(tmp_path / "demo")]) == 0
