@@ -94,6 +94,23 @@ def test_grouped_clouds_get_their_results_of_separate_calls(monkeypatch, key):
         assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
 
 
+def test_separate_loops_give_the_batchs_results_with_one_slot(monkeypatch):
+    """``separate=True``: every cloud in a loop of one slot (the programs of one cloud,
+    whatever the count), the results of the batch, a skipped cloud's place kept."""
+    clouds, shapes = clouds_and_kernel_shapes(monkeypatch)
+    clouds = [np.zeros((10, 3))] + clouds[1:6] + [clouds[0]]
+    together = jaxfit.fit_batch(clouds, "sphere", key=3, skip_failures=True)
+    assert {s[0] for s in shapes} != {1}
+    shapes.clear()
+    apart = jaxfit.fit_batch(clouds, "sphere", key=3, skip_failures=True, separate=True)
+    assert {s[0] for s in shapes} == {1} and len(shapes) >= len(clouds) - 1
+    assert together[0] is None and apart[0] is None
+    for a, b in zip(together[1:], apart[1:], strict=True):
+        assert a.model.to_dict() == b.model.to_dict()
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+        assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
+
+
 def _flat(model) -> np.ndarray:
     """A model's parameters (``to_dict``'s numbers) as one float vector."""
     return np.concatenate([np.ravel(v) for k, v in model.to_dict().items() if k != "type"])

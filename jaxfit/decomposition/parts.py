@@ -189,14 +189,17 @@ class SharedNormals:
 
 def fits(samples, cls, thresholds, key, normals=None) -> list:
     """``fit_batch`` of ``samples`` (failures None), with their ``normals`` if given
-    (``sample_normals``). A lone cloud is fitted twice (its own key and a second draw's;
-    the lower MSAC cost kept): a call of one cloud would compile its own programs, while
-    two share those of a two-part object's fits (a cold ``jaxfit demo`` compiled both),
-    and the first draw is the same as alone."""
+    (``sample_normals``), each sample in a loop of its own (``separate``): a
+    decomposition's part count changes from object to object and from round to round,
+    and each slot count of a batch was a kernel and a refinement per primitive to
+    compile (docs/engine.md, "Session 35"). A lone cloud is fitted twice (its own key
+    and a second draw's, fold_in(key, 1); the lower MSAC cost kept), as when that let it
+    share a two-part object's programs."""
     if len(samples) != 1:
         return fit_batch(samples, cls, normals=normals, thresholds=thresholds, key=key,
-                         skip_failures=True)
+                         skip_failures=True, separate=True)
     results = fit_batch(samples * 2, cls, normals=None if normals is None else normals * 2,
-                        thresholds=list(thresholds) * 2, key=key, skip_failures=True)
+                        thresholds=list(thresholds) * 2, key=key, skip_failures=True,
+                        separate=True)
     done = [r for r in results if r is not None]
     return [min(done, key=lambda r: r.cost) if done else None]

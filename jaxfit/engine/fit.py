@@ -51,8 +51,8 @@ def fit(points, shape, *, normals=None, threshold: float | None = None, key=0,
 
 
 def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
-              skip_failures: bool = False, options: FitOptions | None = None,
-              **settings) -> list[FitResult | None]:
+              skip_failures: bool = False, separate: bool = False,
+              options: FitOptions | None = None, **settings) -> list[FitResult | None]:
     """Fit one primitive to each of several clouds, all in the same compiled calls.
 
     Clouds of similar sizes are padded to one point bucket (and their count to a power
@@ -71,6 +71,12 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     key : cloud i uses ``fold_in(key, i)``.
     skip_failures : give None for a cloud on which no model can be fitted instead of
         raising ``FitError``. Invalid input always raises.
+    separate : fit each cloud in a loop of its own, one after another: the same results,
+        and the programs of one cloud whatever the number of clouds, where a batch
+        compiles a kernel and a refinement for each slot count (a power of two) it
+        meets. For callers whose number of clouds changes from call to call and whose
+        clouds are large enough (thousands of points) that batching gains little in a
+        warm process: the decompositions (figures: docs/engine.md, "Session 35").
     options, settings : as in ``fit``.
 
     Returns
@@ -78,12 +84,13 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     list of FitResult (or None), one per cloud.
     """
     return started_batch(clouds, shape, normals=normals, thresholds=thresholds, key=key,
-                         skip_failures=skip_failures, options=options, **settings)()
+                         skip_failures=skip_failures, separate=separate, options=options,
+                         **settings)()
 
 
 def started_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
-                  skip_failures: bool = False, options: FitOptions | None = None,
-                  start: bool = False, **settings):
+                  skip_failures: bool = False, separate: bool = False,
+                  options: FitOptions | None = None, start: bool = False, **settings):
     """``fit_batch`` in two steps: the call is checked and its clouds prepared now (with
     ``start`` its searches' first batches dispatched too, ``loop.searches``), and
     ``finish(max_hypotheses=None)`` is returned, which runs the rest and gives
@@ -127,7 +134,7 @@ def started_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     if not prepared:
         return lambda max_hypotheses=None: results
     estimate_normals(prepared)
-    run = searches(cls, checked, prepared, key, seed, which, start)
+    run = searches(cls, checked, prepared, key, seed, which, start, separate)
 
     def finish(max_hypotheses: int | None = None) -> list[FitResult | None]:
         lowered = checked if max_hypotheses is None else lower(checked, cls, max_hypotheses)

@@ -161,7 +161,7 @@ def parts(sizes, groups, cores: int = 1) -> list[tuple[list[int], int, int | Non
 
 
 def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
-             which=None, start: bool = False):
+             which=None, start: bool = False, separate: bool = False):
     """The search of the prepared clouds with the checked ``options``, one
     ``search_group`` per part of ``parts``: returns ``run(max_hypotheses=None)``, a
     generator of (part, (theta, drawn, status)) in the parts' order: the part's clouds
@@ -171,7 +171,8 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
     (C,) of each. ``key`` is the call's JAX key, or None with the int ``seed`` it stands
     for; ``which``: each cloud's index in the call (its key is fold_in(key, index);
     default 0, 1, ...). ``max_hypotheses`` lowers the options' (the first batch does not
-    depend on it).
+    depend on it). With ``separate``, every cloud is a group of its own (``fit_batch``'s
+    ``separate``).
 
     Where a group was cut (on the CPU, one device), the parts run one per core at once
     in threads, and the next ones go on while the caller works on the one it was given;
@@ -181,7 +182,7 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
     which = list(range(len(clouds))) if which is None else list(which)
     devices = len(jax.local_devices())
     sizes = [c.points.shape[0] for c in clouds]
-    groups = call_groups(sizes, devices)
+    groups = [[i] for i in range(len(clouds))] if separate else call_groups(sizes, devices)
     count = cores() if devices == 1 and on_cpu() else 0  # (a GPU takes a group whole)
     todo = parts(sizes, groups, count)
     cut = len(todo) > len(groups)
