@@ -22,6 +22,10 @@ off, first process (empty folder) and second process, and a first process fittin
 ``refine=False, polish=True`` (LO on the host: no refinement program; its own empty
 folder).
 
+Then the README's ``jaxfit demo`` (``demo``): per turn a first process on an empty cache
+folder and a second on the folder it filled, whole-process wall and CPU seconds (the
+issue's goal: at most 8 s cold on the 2-core machine).
+
 Then, per primitive, the programs of a cold first fit (each one's trace, lowering and
 compile seconds from ``jax_log_compiles``), with the refinement compiled ahead in a thread
 or in turn; each of those programs compiled again alone from the fit's own arguments
@@ -288,6 +292,34 @@ def whole_process(cloud: Path, work: Path, repeats: int
         print(f"turn {turn}: " + ", ".join(f"{k.split(',')[0]} {v[-1]:.2f}"
                                            for k, v in times.items()), flush=True)
     return times, cpus
+
+
+def demo_runs(work: Path, repeats: int) -> dict[str, dict[str, list[float]]]:
+    """The README's ``jaxfit demo`` (a decomposition of the built-in mallet, its files
+    written) as whole processes: per turn a first process on an empty cache folder, then
+    a second on the same folder; wall and CPU seconds of each."""
+    runs: dict[str, dict[str, list[float]]] = {}
+    for turn in range(repeats):
+        cache, out = str(work / f"demo-{turn}"), str(work / f"demo-out-{turn}")
+        for label in ("first process (empty cache)", "second process (warm cache)"):
+            seconds, cpu, _ = timed([sys.executable, "-m", "jaxfit", "demo", "--out", out],
+                                    _env(cache))
+            runs.setdefault(label, {"wall": [], "cpu": []})
+            runs[label]["wall"].append(seconds)
+            runs[label]["cpu"].append(cpu)
+        print(f"demo turn {turn}: " + ", ".join(f"{k.split(' (')[0]} {v['wall'][-1]:.2f} s"
+                                                 for k, v in runs.items()), flush=True)
+    return runs
+
+
+def demo_table(runs) -> str:
+    lines = ["| `jaxfit demo` | median s | min s | max s | CPU s (median) | runs |",
+             "|---|---|---|---|---|---|"]
+    for label, r in runs.items():
+        lines.append(f"| {label} | {statistics.median(r['wall']):.2f} | {min(r['wall']):.2f} "
+                     f"| {max(r['wall']):.2f} | {statistics.median(r['cpu']):.2f} "
+                     f"| {len(r['wall'])} |")
+    return "\n".join(lines)
 
 
 def first_calls(work: Path, repeats: int) -> list[dict]:
@@ -585,7 +617,7 @@ def plot(times, rows, path):
     print(f"wrote {path}")
 
 
-SECTIONS = ("process", "first-call", "programs", "sizes", "options", "warmup")
+SECTIONS = ("process", "first-call", "demo", "programs", "sizes", "options", "warmup")
 
 
 def main(argv=None):
@@ -615,6 +647,8 @@ def main(argv=None):
                 whole_process(cloud, work, args.repeats)
         if "first-call" in sections:
             results["first_call"] = first_calls(work, args.first_call_repeats)
+        if "demo" in sections:
+            results["demo"] = demo_runs(work, args.first_call_repeats)
         if "programs" in sections:
             results["programs"] = program_costs(work, args.first_call_repeats)
         if "sizes" in sections:
@@ -647,6 +681,9 @@ def main(argv=None):
     if "first_call" in results:
         parts += ["## First call per primitive (fresh process, medians)",
                   first_call_table(results["first_call"])]
+    if "demo" in results:
+        parts += ["## The README's `jaxfit demo` (fresh processes, whole-process times)",
+                  demo_table(results["demo"])]
     if "programs" in results:
         parts += ["## Programs of a first fit (fresh process, empty cache, 2,000 points, "
                   "medians): the refinement compiled ahead in a thread, or in turn",
