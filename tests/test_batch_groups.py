@@ -94,21 +94,23 @@ def test_grouped_clouds_get_their_results_of_separate_calls(monkeypatch, key):
         assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
 
 
-def test_separate_loops_give_the_batchs_results_with_one_slot(monkeypatch):
-    """``separate=True``: every cloud in a loop of one slot (the programs of one cloud,
-    whatever the count), the results of the batch, a skipped cloud's place kept."""
+def test_separate_loops_give_the_batchs_results_with_one_program(monkeypatch):
+    """``separate=True``: every cloud in a loop of one slot, padded as the largest (one
+    program whatever the count and sizes), the batch's results up to float rounding (the
+    padding differs), a skipped cloud's place kept."""
     clouds, shapes = clouds_and_kernel_shapes(monkeypatch)
     clouds = [np.zeros((10, 3))] + clouds[1:6] + [clouds[0]]
     together = jaxfit.fit_batch(clouds, "sphere", key=3, skip_failures=True)
-    assert {s[0] for s in shapes} != {1}
+    assert all(slots_count > 1 for slots_count, _ in shapes)
     shapes.clear()
     apart = jaxfit.fit_batch(clouds, "sphere", key=3, skip_failures=True, separate=True)
-    assert {s[0] for s in shapes} == {1} and len(shapes) >= len(clouds) - 1
+    assert set(shapes) == {(1, 2048)} and len(shapes) >= len(clouds) - 1
     assert together[0] is None and apart[0] is None
     for a, b in zip(together[1:], apart[1:], strict=True):
-        assert a.model.to_dict() == b.model.to_dict()
+        np.testing.assert_allclose(_flat(a.model), _flat(b.model), rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(a.cost, b.cost, rtol=1e-5)
         np.testing.assert_array_equal(a.inliers, b.inliers)
-        assert (a.cost, a.num_hypotheses, a.status) == (b.cost, b.num_hypotheses, b.status)
+        assert (a.num_hypotheses, a.status) == (b.num_hypotheses, b.status)
 
 
 def _flat(model) -> np.ndarray:

@@ -71,12 +71,14 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
     key : cloud i uses ``fold_in(key, i)``.
     skip_failures : give None for a cloud on which no model can be fitted instead of
         raising ``FitError``. Invalid input always raises.
-    separate : fit each cloud in a loop of its own, one after another: the same results,
-        and the programs of one cloud whatever the number of clouds, where a batch
-        compiles a kernel and a refinement for each slot count (a power of two) it
-        meets. For callers whose number of clouds changes from call to call and whose
-        clouds are large enough (thousands of points) that batching gains little in a
-        warm process: the decompositions (figures: docs/engine.md, "Session 35").
+    separate : fit each cloud in a loop of its own, one after another, each padded as
+        the call's largest cloud (its point bucket and LO's rows): the same results up to
+        float rounding, and one program of one cloud whatever the number and sizes of
+        the clouds, where a batch compiles a kernel and a refinement for each slot count
+        (a power of two) and bucket it meets. For callers whose number of clouds changes
+        from call to call and whose clouds are large enough (thousands of points) that
+        batching gains little in a warm process: the decompositions (figures:
+        docs/engine.md, "Session 35").
     options, settings : as in ``fit``.
 
     Returns

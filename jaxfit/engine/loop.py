@@ -171,8 +171,8 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
     (C,) of each. ``key`` is the call's JAX key, or None with the int ``seed`` it stands
     for; ``which``: each cloud's index in the call (its key is fold_in(key, index);
     default 0, 1, ...). ``max_hypotheses`` lowers the options' (the first batch does not
-    depend on it). With ``separate``, every cloud is a group of its own (``fit_batch``'s
-    ``separate``).
+    depend on it). With ``separate``, every cloud is a group of its own, padded as the
+    largest cloud (``fit_batch``'s ``separate``).
 
     Where a group was cut (on the CPU, one device), the parts run one per core at once
     in threads, and the next ones go on while the caller works on the one it was given;
@@ -186,11 +186,12 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
     count = cores() if devices == 1 and on_cpu() else 0  # (a GPU takes a group whole)
     todo = parts(sizes, groups, count)
     cut = len(todo) > len(groups)
+    reach = max(sizes) if separate else None
 
     def arguments(part, lowered):
         clouds_of, bucket, rows = part
         return (cls, lowered, [clouds[j] for j in clouds_of], key, seed,
-                [which[j] for j in clouds_of], bucket, rows)
+                [which[j] for j in clouds_of], bucket if reach is None else None, rows, reach)
 
     started = [Search(*arguments(part, options)) for part in todo] if start and not cut \
         else None
@@ -244,15 +245,18 @@ class Search:
 
 
 def search_group(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
-                 which=None, size: int | None = None, rows: int | None = None):
+                 which=None, size: int | None = None, rows: int | None = None,
+                 reach: int | None = None):
     """The search of clouds that share one loop (as ``searches`` gives it for a part),
     padded to ``size`` points (a bucket; default the largest cloud's) and ``rows``
-    slots (default ``backend.slots`` of the clouds)."""
-    return Search(cls, options, clouds, key, seed, which, size, rows).result()
+    slots (default ``backend.slots`` of the clouds); with ``reach``, padded (bucket and
+    LO's rows) as if the largest cloud had that many points."""
+    return Search(cls, options, clouds, key, seed, which, size, rows, reach).result()
 
 
 def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
-                  which=None, size: int | None = None, rows: int | None = None):
+                  which=None, size: int | None = None, rows: int | None = None,
+                  reach: int | None = None):
     """``search_group`` as a generator for ``Search``: it yields once, after dispatching
     the first batch, and takes a lower ``max_hypotheses`` (or None) there; it returns
     the search's (theta, drawn, status)."""
@@ -260,7 +264,7 @@ def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], ke
     count = len(clouds)
     devices = jax.local_devices()
     rows_count = slots(count, len(devices)) if rows is None else rows
-    n_max = max(c.points.shape[0] for c in clouds)
+    n_max = max([c.points.shape[0] for c in clouds] + [reach or 0])
     size = bucket_size(n_max) if size is None else size
     dtype = jax.dtypes.canonicalize_dtype(np.float64)  # float32 unless x64 is on
     order = list(range(count)) + [0] * (rows_count - count)  # padding slots repeat cloud 0
