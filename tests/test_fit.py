@@ -121,6 +121,8 @@ def test_keys_made_in_numpy_are_jax_fold_ins():
         assert np.array_equal(jax.random.key_data(_checks._seed_key(seed, keys.THREEFRY)),
                               jax.random.key_data(key))
         assert np.array_equal(jax.random.key_data(keys.keys_at(key, indices)), made)
+        at = keys.seed_keys_at(seed, tuple(int(i) for i in indices))
+        assert np.array_equal(jax.random.key_data(at), made)
         assert np.array_equal(keys.normals_key_data(key, 5),
                               jax.random.key_data(keys.normals_key(key, 5)))
     other = jax.random.key(3, impl="rbg")

@@ -17,7 +17,7 @@ from ..shapes import Model
 from .backend import cores, in_threads, on_cpu, placer, slots
 from .cloud import Cloud, bucket_size
 from .kernel import batch_best_many, refine_many
-from .keys import cloud_keys, keys_at, seed_cloud_keys
+from .keys import THREEFRY, cloud_keys, keys_at, seed_cloud_keys, seed_keys_at
 from .options import Bounds, FitOptions
 from .refine import lo_rows
 from .stopping import Status
@@ -131,11 +131,14 @@ def _keys(key, seed, which, count: int, rows_count: int):
     """The (rows_count,) keys of the slots: fold_in(key, index in the call) for each
     cloud, and padding slots fold_in(key, slot) when the clouds are the call's first ones
     (one cached dispatch), else the first cloud's key."""
+    impl = jax.config.jax_default_prng_impl
     if which is None or list(which) == list(range(count)):
         return (cloud_keys(key, rows_count) if seed is None
-                else seed_cloud_keys(seed, jax.config.jax_default_prng_impl, rows_count))
-    base = key if seed is None else _checks.prng_key(seed)
-    return keys_at(base, list(which) + [which[0]] * (rows_count - count))
+                else seed_cloud_keys(seed, impl, rows_count))
+    indices = [int(i) for i in which] + [int(which[0])] * (rows_count - count)
+    if seed is not None and impl == THREEFRY:
+        return seed_keys_at(seed, tuple(indices))
+    return keys_at(key if seed is None else _checks.prng_key(seed), indices)
 
 
 def parts(sizes, groups, cores: int = 1) -> list[tuple[list[int], int, int | None]]:
