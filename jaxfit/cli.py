@@ -615,8 +615,9 @@ def _add_warmup(sub):
                         help=f"primitives to compile for (default all: {', '.join(REGISTRY)})")
     warmup.add_argument("--buckets", nargs="+", type=int, default=None, metavar="N",
                         help="point buckets (powers of two a cloud is padded to) to compile "
-                             "for (default: 1024 16384, the decomposition's parts and "
-                             "clouds of 8,193-16,384 points)")
+                             "for (default: 1024 2048 16384: clouds of up to 1,024 and "
+                             "2,048 points, every decomposition, and clouds of "
+                             "8,193-16,384 points)")
     warmup.set_defaults(run=_cmd_warmup)
 
 

@@ -18,10 +18,11 @@ from collections.abc import Callable, Iterable
 from ._checks import model_class, positive
 from .shapes import REGISTRY
 
-#: Point buckets warmed by default: clouds of 513-1,024 points (and the small clouds of
-#: the decomposition's parts) and of 8,193-16,384 points (the CLI's 10k-point clouds).
-#: A cloud in another bucket compiles its own kernel on its first fit.
-DEFAULT_BUCKETS = (1024, 16384)
+#: Point buckets warmed by default: clouds of up to 1,024 points, of 1,025-2,048 points
+#: (and every decomposition: its fits run in the 2,048 bucket, ``parts.MAX_FIT_POINTS``,
+#: with the same programs as a fit's) and of 8,193-16,384 points (the CLI's 10k-point
+#: clouds). A cloud in another bucket compiles its own kernel on its first fit.
+DEFAULT_BUCKETS = (1024, 2048, 16384)
 #: Synthetic clouds' outlier share and seed (any value compiles the same programs).
 OUTLIERS = 0.3
 SEED = 0

@@ -45,3 +45,35 @@ def test_an_unknown_shape_or_bad_worker_count_is_named():
         warmup(["torus"], buckets=[1024])
     with pytest.raises(ValueError, match="workers must be a positive integer"):
         warmup(["sphere"], buckets=[1024], workers=0)
+
+
+def test_a_decomposition_runs_the_programs_that_warmup_compiles(monkeypatch):
+    """Every kernel and refinement a decomposition's fits call (one cloud a loop, padded
+    as the 2,048 bucket: ``fit_batch(separate=True)``) is one that ``warmup`` of that
+    bucket called: after ``jaxfit warmup``, a decomposition compiles none of its fits'."""
+    from jaxfit import _cache
+    from jaxfit.decomposition import decompose
+    from jaxfit.evaluation.synthetic import composite
+
+    if _cache.compilation_cache_dir() is None:
+        pytest.skip("jaxfit's cache is off (JAXFIT_CACHE=0): no program signatures to read")
+    phase = {"now": None}
+    calls: dict[str, set] = {"warmup": set(), "decompose": set()}
+    original = _cache.Stored._signature
+
+    def recording(self, *args):
+        signature = original(self, *args)
+        if phase["now"] and self.name.endswith(("_batch_best_many", "_refine_many")):
+            calls[phase["now"]].add((self.name, signature))
+        return signature
+
+    monkeypatch.setattr(_cache.Stored, "_signature", recording)
+    phase["now"] = "warmup"
+    warmup(["sphere"], buckets=[2048], workers=1)
+    points, _, _ = composite("mallet", seed=0)
+    phase["now"] = "decompose"
+    result = decompose(points, shapes=["sphere"], key=0)
+    phase["now"] = None
+    assert len(result.parts) >= 1
+    assert {name for name, _ in calls["decompose"]} == {name for name, _ in calls["warmup"]}
+    assert calls["decompose"] <= calls["warmup"]
