@@ -193,8 +193,9 @@ def fits(samples, cls, thresholds, key, normals=None) -> list:
     decomposition's part count changes from object to object and from round to round,
     and each slot count of a batch was a kernel and a refinement per primitive to
     compile (docs/engine.md, "Session 35"). A lone cloud is fitted twice (its own key
-    and a second draw's, fold_in(key, 1); the lower MSAC cost kept), as when that let it
-    share a two-part object's programs."""
+    and a second draw's, fold_in(key, 1); the lower MSAC cost kept): that once let it
+    share a two-part object's programs, and stays so that the decompositions' results
+    stay as they were."""
     if len(samples) != 1:
         return fit_batch(samples, cls, normals=normals, thresholds=thresholds, key=key,
                          skip_failures=True, separate=True)
