@@ -623,7 +623,9 @@ SECTIONS = ("process", "first-call", "demo", "programs", "sizes", "options", "wa
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5, help="turns per method (5)")
-    parser.add_argument("--first-call-repeats", type=int, default=3)
+    parser.add_argument("--first-call-repeats", type=int, default=3,
+                        help="turns of every section but process: first-call, demo, "
+                             "programs, sizes, options, warmup (3)")
     parser.add_argument("--sections", default=",".join(SECTIONS),
                         help="comma-separated among " + ", ".join(SECTIONS) + " (all); the "
                         "others keep their results from the committed JSON")
