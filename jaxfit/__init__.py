@@ -6,11 +6,13 @@ import importlib.util
 import sys
 import types
 
-from . import _cache
+from . import _cache, _malloc
 from ._cache import compilation_cache_dir
 from ._checks import FitError
 from .engine import Bounds, FitOptions, FitResult, Status, fit, fit_batch
 from .shapes import Box, Cone, Cylinder, Model, Plane, Sphere, allclose
+
+_malloc.keep_freed_memory()
 
 #: Public names imported from their module on first use (PEP 562 ``__getattr__``), not by
 #: ``import jaxfit``: a process that only fits skips their imports (docs/engine.md,
