@@ -76,7 +76,9 @@ class LocalOptimizer:
         one ``vmap`` (each start's cloud arrays gathered by index; one cloud's shared):
         a vmap of the starts inside a vmap of the clouds had traced every while_loop
         through two batching levels (a first fit of two parts: 2.5x the refinement's
-        trace of one)."""
+        trace of one). A single cloud's starts are a scan instead (``lax.map``): its
+        program then has no batched while_loop at all, and a cold first fit traces and
+        compiles ~15 % less (docs/engine.md, "Session 36")."""
         count, starts = thetas.shape[:2]
         cloud = (points, n_valid, threshold, bounds, normals)
 
@@ -87,7 +89,7 @@ class LocalOptimizer:
 
         flat = (thetas.reshape(count * starts, thetas.shape[2]),
                 jnp.repeat(jnp.arange(count), starts))
-        out = map_leading(one, flat, group * starts)
+        out = map_leading(one, flat, None if count == 1 else group * starts)
         return jax.tree.map(lambda a: a.reshape(count, starts, *a.shape[1:]), out)
 
 
