@@ -13,6 +13,9 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+import warnings
+
+from ._cache import OFF_VALUES
 
 #: mallopt's parameters (glibc's malloc.h).
 M_TOP_PAD = -2
@@ -24,8 +27,10 @@ TOP_PAD = 64 << 20
 #: rises to this same ceiling (DEFAULT_MMAP_THRESHOLD_MAX on 64-bit), but only after a
 #: first such array is freed, and setting the top pad alone would freeze it low.
 MMAP_THRESHOLD = 32 << 20
-#: Set to "0" to leave the process's malloc settings as they are.
+#: Set to "0" (or "false", "no", "off", as ``JAXFIT_CACHE``) to leave the process's
+#: malloc settings as they are; "1", "true", "yes", "on" or unset: set them.
 ENVIRONMENT = "JAXFIT_MALLOC"
+ON_VALUES = frozenset({"", "1", "true", "yes", "on"})
 
 applied: bool | None = None  # (set once, by ``keep_freed_memory``)
 
@@ -33,13 +38,21 @@ applied: bool | None = None  # (set once, by ``keep_freed_memory``)
 def keep_freed_memory() -> bool:
     """Sets glibc's top pad (``TOP_PAD``) and mmap threshold (``MMAP_THRESHOLD``) for the
     process, once; returns whether both were set. Nothing is done outside glibc (macOS,
-    Windows, musl), or with ``JAXFIT_MALLOC=0``. The cost: up to ``TOP_PAD`` of freed
+    Windows, musl), or with ``JAXFIT_MALLOC=0``; another value than those of
+    ``ENVIRONMENT`` warns. The cost: up to ``TOP_PAD`` of freed
     memory per malloc arena stays with the process instead of going back to the system."""
     global applied
     if applied is not None:
         return applied
     applied = False
-    if os.environ.get(ENVIRONMENT, "1").strip() == "0" or not sys.platform.startswith("linux"):
+    value = os.environ.get(ENVIRONMENT, "").strip().lower()
+    if value in OFF_VALUES:
+        return applied
+    if value not in ON_VALUES:
+        warnings.warn(f"jaxfit: {ENVIRONMENT}={os.environ[ENVIRONMENT]!r} is not understood "
+                      f"(0 to leave malloc as it is, 1 to set it); setting it",
+                      RuntimeWarning, stacklevel=2)
+    if not sys.platform.startswith("linux"):
         return applied
     try:
         libc = ctypes.CDLL(None)

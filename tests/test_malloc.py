@@ -48,6 +48,19 @@ def test_freed_arrays_stay_mapped_and_the_setting_turns_it_off():
     assert faults < 0.05 * left_faults
 
 
+def test_an_unknown_setting_warns_and_off_values_are_the_caches(monkeypatch):
+    monkeypatch.setattr(_malloc, "applied", None)
+    monkeypatch.setenv(_malloc.ENVIRONMENT, "maybe")
+    monkeypatch.setattr(_malloc.sys, "platform", "darwin")  # (nothing set in this process)
+    with pytest.warns(RuntimeWarning, match="JAXFIT_MALLOC='maybe' is not understood"):
+        assert _malloc.keep_freed_memory() is False
+    for off in ("0", "off", " False "):
+        monkeypatch.setattr(_malloc, "applied", None)
+        monkeypatch.setenv(_malloc.ENVIRONMENT, off)
+        monkeypatch.setattr(_malloc.sys, "platform", "linux")
+        assert _malloc.keep_freed_memory() is False
+
+
 def test_keep_freed_memory_is_set_once():
     first = _malloc.applied
     assert _malloc.keep_freed_memory() is first
