@@ -293,6 +293,31 @@ def test_screened_kernel_returns_the_all_points_cost_of_the_batch_best(monkeypat
     assert float(cost) <= float(unscreened[1]) * (1 + 1e-6)
 
 
+def test_kernel_without_counts_picks_and_costs_the_same():
+    # A search with LO reads LO's inlier counts, so its kernel skips theirs
+    # (counts=False): the same best hypotheses and costs, screened (a bucket over
+    # SCREEN_POINTS) or not, and counts of -1.
+    import jax
+
+    from jaxfit.engine import kernel, scoring
+
+    points, threshold = _plane_cloud(3000, 0.5, seed=2)
+    for size in (scoring.SCREEN_POINTS, 2 * scoring.SCREEN_POINTS):
+        padded = np.zeros((size, 3), np.float32)
+        n = min(3000, size)
+        padded[:n] = points[:n]
+        args = (jnp.asarray(padded), n, jax.random.key(8), jnp.float32(threshold))
+        run = jax.jit(kernel._batch_best, static_argnums=(0, 1),
+                      static_argnames=("top", "counts"))
+        with_counts = run(Plane, 64, *args, top=4)
+        without = run(Plane, 64, *args, top=4, counts=False)
+        for a, b in zip(with_counts[:2] + with_counts[3:], without[:2] + without[3:],
+                        strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert np.all(np.asarray(with_counts[2]) > 0)
+        np.testing.assert_array_equal(np.asarray(without[2]), -1)
+
+
 def test_map_leading_equals_lax_map_at_every_count():
     # The loop-free cases (one row: called directly; as many rows as the batch: vmapped)
     # give what lax.map gives, None leaves included.

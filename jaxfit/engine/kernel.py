@@ -57,7 +57,8 @@ def estimate_batch(cls: type[Model], samples, support, normals=None,
 def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, threshold,
                 normals=None, estimator: str = "thesis", top: int | None = None,
                 n_sample=None, bounds=None, gated: bool = False, n_chunks=None,
-                sampler: Sampler = DEFAULT_SAMPLER, scorer: Scorer = DEFAULT_SCORER):
+                sampler: Sampler = DEFAULT_SAMPLER, scorer: Scorer = DEFAULT_SCORER,
+                counts: bool = True):
     """The one kernel: H hypotheses from ``key`` scored on padded points (B, 3) (with
     their normals (B, 3) for the oriented estimator). Samples are drawn among the first
     ``n_sample`` points (default all n_valid). Hypotheses outside the user's ``bounds``
@@ -68,6 +69,8 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     all n_valid points.
     Returns the best (theta (P,), cost, inlier count) and the number of valid samples;
     with ``top`` the ``top`` best, best first: thetas (top, P), costs (top,), counts (top,).
+    ``counts=False``: the counts are -1, not computed (a search with LO reads LO's own, so
+    its kernel skips their scoring pass: one scan loop less to compile).
     """
     est = cls.estimator(estimator)
     key_sample, key_support = jax.random.split(key)
@@ -89,20 +92,22 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     if points.shape[0] > SCREEN_POINTS and keep < batch_size:
         # (the bucket is static: small clouds' programs are not changed by this)
         kept = screened(cls, thetas, valid, points, n_valid, threshold, gate, keep, scorer)
-        costs, counts = score(cls, thetas[kept], valid[kept], points, n_valid, threshold,
-                              gate=gate, n_chunks=n_chunks, scorer=scorer)
+        scored = score(cls, thetas[kept], valid[kept], points, n_valid, threshold,
+                       counts=counts, gate=gate, n_chunks=n_chunks, scorer=scorer)
+        costs, found = scored if counts else (scored, jnp.full(keep, -1, jnp.int32))
         _, order = jax.lax.top_k(-costs, wanted)
-        best, costs, counts = kept[order], costs[order], counts[order]
+        best, costs, found = kept[order], costs[order], found[order]
     else:
         costs = score(cls, thetas, valid, points, n_valid, threshold, counts=False,
                       gate=gate, n_chunks=n_chunks, scorer=scorer)
         _, best = jax.lax.top_k(-costs, wanted)
         costs = costs[best]
-        _, counts = score(cls, thetas[best], valid[best], points, n_valid, threshold,
-                          gate=gate, n_chunks=n_chunks, scorer=scorer)
+        found = score(cls, thetas[best], valid[best], points, n_valid, threshold, gate=gate,
+                      n_chunks=n_chunks, scorer=scorer)[1] if counts else \
+            jnp.full(wanted, -1, jnp.int32)
     if top is None:
-        return thetas[best[0]], costs[0], counts[0], jnp.sum(valid)
-    return thetas[best], costs, counts, jnp.sum(valid)
+        return thetas[best[0]], costs[0], found[0], jnp.sum(valid)
+    return thetas[best], costs, found, jnp.sum(valid)
 
 
 def screened(cls: type[Model], thetas, valid, points, n_valid, threshold, gate, keep: int,
@@ -125,35 +130,39 @@ batch_best = jit_tuned(_batch_best, static_argnames=("cls", "batch_size", "estim
 
 def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sample,
                      cloud_keys, threshold, bounds, batch, gated=False,
-                     sampler: Sampler = DEFAULT_SAMPLER, scorer: Scorer = DEFAULT_SCORER):
+                     sampler: Sampler = DEFAULT_SAMPLER, scorer: Scorer = DEFAULT_SCORER,
+                     counts: bool = True):
     """``batch_best`` for every cloud: points (C, B, 3), normals (C, B, 3) or None,
     n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), bounds (``Bounds``
     with a leading (C,) axis); batch b of cloud c uses fold_in(cloud_keys[c], b).
     Returns each cloud's ``cls.lo_starts`` best: thetas (C, S, P), costs (C, S),
-    counts (C, S), and its valid samples (C,)."""
+    counts (C, S) (-1 with ``counts=False``), and its valid samples (C,)."""
 
     n_chunks = live_chunks(jnp.max(n_valid))  # one loop bound for all clouds
 
     def one(args):
         p, nrm, n, m, k, t, b = args
         return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
-                           estimator, cls.lo_starts, m, b, gated, n_chunks, sampler, scorer)
+                           estimator, cls.lo_starts, m, b, gated, n_chunks, sampler, scorer,
+                           counts)
 
     return map_leading(one, (points, normals, n_valid, n_sample, cloud_keys, threshold,
                              bounds), group(points.shape[0], CHUNK * batch_size))
 
 
-_KERNEL_ARGS = ("cls", "batch_size", "estimator", "gated", *_STAGES)
+_KERNEL_ARGS = ("cls", "batch_size", "estimator", "gated", *_STAGES, "counts")
 _batch_best_alone = jit_tuned(_batch_best_many, _KERNEL_ARGS)
 _batch_best_beside = jit_tuned(_batch_best_many, _KERNEL_ARGS, BESIDE_OPTIONS)
 
 
 def batch_best_many(*args, beside_refinement: bool = False, **kwargs):
-    """``_batch_best_many``, jitted; ``beside_refinement``: for a search whose refinement
-    program compiles beside the kernel's (``BESIDE_OPTIONS``: the same program, its code
-    generated unsplit, which can round a float32 result differently)."""
-    kernel = _batch_best_beside if beside_refinement else _batch_best_alone
-    return kernel(*args, **kwargs)
+    """``_batch_best_many``, jitted; ``beside_refinement``: for a search with LO, whose
+    refinement program compiles beside the kernel's (``BESIDE_OPTIONS``: its code
+    generated unsplit, which can round a float32 result differently) and gives the inlier
+    counts the loop reads (so this kernel computes none: ``counts=False``)."""
+    if beside_refinement:
+        return _batch_best_beside(*args, counts=False, **kwargs)
+    return _batch_best_alone(*args, **kwargs)
 
 
 def group(clouds: int, elements: int) -> int:
