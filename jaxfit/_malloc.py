@@ -4,8 +4,8 @@ mapping them again on the next fit.
 A fit of 1e5 points makes dozens of NumPy temporaries of ~0.8 MB. Under glibc's default
 (dynamic) thresholds the heap is trimmed as soon as more than twice the largest of them
 lies free at its top, and arrays above the mmap threshold are mapped one by one: every
-fit then faults its memory in afresh (a plane of 1e5 points: ~1,300 page faults, about
-a third of its time on this project's VM; docs/engine.md, "Session 36").
+fit then faults its memory in afresh (a plane of 1e5 points: ~1,300 page faults a fit;
+docs/engine.md, "Session 36").
 """
 
 from __future__ import annotations
