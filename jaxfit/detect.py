@@ -21,8 +21,11 @@ Each round works on *groups*: the connected components of the points still unass
 floor is taken. Every live group gives up at most one primitive per round: each shape is
 fitted to every group at once (one ``jaxfit.fit_batch`` call per shape and round, group g
 its cloud g, on at most ``fit_points`` of each group's points) and its support measured
-on the whole group. A group can only lose points to a primitive fitted inside it, so the
-groups of a round do not interact. The candidates are fitted without LO-RANSAC
+on the whole group. Each group is searched in a loop of its own (``separate``): a round's
+group count changes from scene to scene and round to round, and a batch compiles each
+shape's kernel once per slot count it meets, where one cloud's kernel serves them all. A
+group can only lose points to a primitive fitted inside it, so the groups of a round do
+not interact. The candidates are fitted without LO-RANSAC
 (``CANDIDATE_OPTIONS``); each group's winner is refitted instead, by a least-squares fit
 on its support (``_polished``). Every shape's first batch is dispatched at the start of
 the round; then the most complex shape is finished first, and a simpler one's search
@@ -1012,7 +1015,7 @@ def _candidates(ctx: _Context, cls, fit_on, groups, seed: int, fit_options=None,
     fits = started_batch(
         [ctx.cloud.take(fit_on[g], axis=0) for g in which], cls,
         normals=[ctx.normals.take(fit_on[g], axis=0) for g in which],
-        thresholds=ctx.threshold, key=seed, skip_failures=True, start=start,
+        thresholds=ctx.threshold, key=seed, skip_failures=True, start=start, separate=True,
         **(ctx.fit_options if fit_options is None else fit_options))
 
     def finish(max_hypotheses=None):

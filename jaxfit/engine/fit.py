@@ -77,8 +77,8 @@ def fit_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
         the clouds, where a batch compiles a kernel and a refinement for each slot count
         (a power of two) and bucket it meets. For callers whose number of clouds changes
         from call to call and whose clouds are large enough (thousands of points) that
-        batching gains little in a warm process: the decompositions (figures:
-        docs/engine.md, "Session 35").
+        batching gains little in a warm process: the decompositions and ``detect``
+        (figures: docs/engine.md, "Session 35"; docs/detect.md).
     options, settings : as in ``fit``.
 
     Returns

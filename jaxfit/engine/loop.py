@@ -207,7 +207,8 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
                 min(len(todo), count)))
             return
         for k, part in enumerate(todo):
-            yield part[0], (started[k].result(max_hypotheses) if started is not None
+            yield part[0], (started[k].result(None if lowered is options else lowered)
+                            if started is not None
                             else search_group(*arguments(part, lowered)))
 
     return run
@@ -233,13 +234,13 @@ class Search:
         except StopIteration as stop:  # (no batch to run)
             self._found = stop.value
 
-    def result(self, max_hypotheses: int | None = None):
-        """``search_group``'s (theta, drawn, status); ``max_hypotheses``: at most that
-        many hypotheses a cloud instead of the options' (the first batch does not depend
-        on it)."""
+    def result(self, lowered: FitOptions | None = None):
+        """``search_group``'s (theta, drawn, status); ``lowered``: the search's options
+        with fewer ``max_hypotheses`` (``lower``; the first batch does not depend on
+        them), made once by the caller for all of a call's searches."""
         if self._found is None:
             try:
-                self._steps.send(max_hypotheses)
+                self._steps.send(lowered)
             except StopIteration as stop:
                 self._found = stop.value
             else:  # pragma: no cover - _search_steps yields once
@@ -261,8 +262,8 @@ def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], ke
                   which=None, size: int | None = None, rows: int | None = None,
                   reach: int | None = None):
     """``search_group`` as a generator for ``Search``: it yields once, after dispatching
-    the first batch, and takes a lower ``max_hypotheses`` (or None) there; it returns
-    the search's (theta, drawn, status)."""
+    the first batch, and takes options with a lower ``max_hypotheses`` (or None) there; it
+    returns the search's (theta, drawn, status)."""
     est = cls.estimator(options.estimator)
     count = len(clouds)
     devices = jax.local_devices()
@@ -331,7 +332,7 @@ def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], ke
         if batch == 0:  # (``Search``'s first step ends here: the batch dispatched, not read)
             lowered = yield
             if lowered is not None:
-                options = lower(options, cls, lowered)
+                options = lowered
         batch += 1
         drawn[active] = batch * batch_size
         # LO-RANSAC: polish every so-far-best raw hypothesis (compared with raw ones only,
