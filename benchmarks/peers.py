@@ -9,12 +9,13 @@ centre 5-20 sizes from the origin, Gaussian noise along the normal of sigma = 0.
 the shape's size (``Model.size``), outliers uniform in the shape's bounding box grown by
 20 %, threshold 3 sigma for every method. Every method runs once untimed per cloud
 (warm), then the methods take turns for ``repeats`` timed runs (interleaved, so the
-machine's load falls on all of them alike), on the first ``clouds`` clouds of a
-setting; the errors come from ``ACCURACY_CLOUDS`` clouds (the untimed runs). The table
-gives the median wall time, the ratio jaxfit / peer (< 1: jaxfit faster), the median
-accuracy (normal or axis angle, centre and radius errors relative to the radius) and
-inlier precision / recall against the generator's truth; its head applies the issue's
-rule (no slower, at equal or better accuracy) to every pair (``verdicts``).
+machine's load falls on all of them alike; more turns while they are cheap, ``turns``),
+on the first ``clouds`` clouds of a setting; the errors come from ``ACCURACY_CLOUDS``
+clouds (the untimed runs). The table gives the median wall time, the ratio jaxfit / peer
+(< 1: jaxfit faster), the median accuracy (normal or axis angle, centre and radius errors
+relative to the radius) and inlier precision / recall against the generator's truth;
+its head applies the issue's rule (no slower, at equal or better accuracy) to every pair
+(``verdicts``).
 
 Scenes: ``SCENES`` synthetic floor scenes (``synthetic.scene``: floor + 3-4 spheres,
 cylinders, cones, ~20k points, 10 % uniform outliers added) and the two Fit4CAD scans
@@ -66,6 +67,11 @@ KINDS = ("sphere", "cylinder", "lying_cylinder", "cone")
 #: Python/NumPy peers have no first-call cost, and pyRANSAC-3D's 1e5-point sphere took
 #: ~12 s a run.
 SLOW_S = 2.0
+#: Interleaved timed runs go on past ``repeats`` while a cloud's (or scene's) turns have
+#: taken less than this many seconds, up to ``MAX_REPEATS``: cheap cells (1e3 points,
+#: a few ms a run) otherwise rest on 6 runs and flip between runs of the benchmark.
+REPEAT_BUDGET_S = 1.0
+MAX_REPEATS = 15
 #: Settings not run: pyRANSAC-3D's cylinder took 12.5 s a run at 1e4 points (~2 minutes
 #: at 1e5, for an axis 8 degrees off at 1e4).
 SKIP = {("pyransac3d_1000", "cylinder", 100_000)}
@@ -329,7 +335,7 @@ def single_setting(shape, n, share, clouds, repeats, methods, accuracy_clouds=0)
             found["recall"] = float(mask[truth].mean())
             measures[m].append(found)
             runs[m] = run
-        for _ in range(repeats if c < clouds else 0):
+        for _ in turns(repeats if c < clouds else 0):
             for m in names:
                 if m in once:
                     continue
@@ -347,6 +353,17 @@ def single_setting(shape, n, share, clouds, repeats, methods, accuracy_clouds=0)
     for m in names:
         row["methods"][m]["ratio"] = row["methods"]["jaxfit"]["ms"] / row["methods"][m]["ms"]
     return row
+
+
+def turns(repeats: int):
+    """Yields once per turn of interleaved timed runs: ``repeats`` times (none for 0),
+    then again while all turns so far took less than ``REPEAT_BUDGET_S``, at most
+    ``MAX_REPEATS`` turns."""
+    start, turn = time.perf_counter(), 0
+    while turn < repeats or (0 < repeats and turn < MAX_REPEATS
+                             and time.perf_counter() - start < REPEAT_BUDGET_S):
+        yield turn
+        turn += 1
 
 
 def _brief(row):
@@ -394,7 +411,7 @@ def scene_setting(name, points, truth, kinds, repeats: int, methods) -> dict:
     results, times = {}, {m: [] for m in runs}
     for m, run in runs.items():
         results[m] = run()  # warm
-    for _ in range(repeats):
+    for _ in turns(repeats):
         for m, run in runs.items():
             start = time.perf_counter()
             run()
@@ -407,7 +424,8 @@ def scene_setting(name, points, truth, kinds, repeats: int, methods) -> dict:
                                               indices=np.flatnonzero(labels == j))
                               for j, line in enumerate(lines)]
     for m in runs:
-        row["methods"][m] = {"s": float(np.median(times[m])), "detected": len(detections[m]),
+        row["methods"][m] = {"s": float(np.median(times[m])), "timed_runs": len(times[m]),
+                             "detected": len(detections[m]),
                              "found": found_count(truth, kinds, detections[m])}
     return row
 
@@ -709,8 +727,10 @@ def main(argv=None):
     meta = {"quick": args.quick, "machine": f"{platform.machine()}, {_cores()} cores",
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "seconds": time.perf_counter() - start, **settings,
-            "note": f"{settings['clouds']} clouds per setting x {settings['repeats']} "
-                    f"interleaved warm runs timed, errors over {settings['accuracy_clouds']} "
+            "note": f"{settings['clouds']} clouds per setting x {settings['repeats']}-"
+                    f"{MAX_REPEATS} interleaved warm runs timed (more while a cloud's turns "
+                    f"take under {REPEAT_BUDGET_S:g} s), scenes {scene_repeats}-{MAX_REPEATS}; "
+                    f"errors over {settings['accuracy_clouds']} "
                     "clouds; noise sigma 0.2 % of the size, threshold 3 sigma; "
                     "CGAL's normals (Open3D, 16 neighbours) outside its time, jaxfit's inside."}
     args.out.mkdir(parents=True, exist_ok=True)
