@@ -223,6 +223,32 @@ def test_analytic_jacobian_refits_as_the_differences(shape, monkeypatch):
     assert analytic[1] < analytic[2]  # (it moved)
 
 
+def test_lo_steps_with_the_analytic_jacobian_land_where_the_jvps_do(monkeypatch):
+    # LO's LM steps take the shape's theta_jacobian (``lm_analytic``) in place of JVPs of
+    # theta_residual: the same step up to float32 rounding (one round of one step, which
+    # a wrong Jacobian would change; converged, both land on the least-squares fit).
+    import jax
+
+    cls = REGISTRY["cylinder"]
+    assert cls.lm_analytic and cls.theta_jacobian is not None
+    points, theta, _ = noisy("cylinder", 2048, seed=6)
+    start = theta + np.random.default_rng(7).normal(0, 1e-2, theta.shape)
+    args = (np.asarray(start, np.float32), np.asarray(points, np.float32), 2048,
+            np.float32(3 * SIGMA))
+
+    def refined():  # (a new function each time: JAX would reuse the first one's trace)
+        return [np.asarray(x) for x in jax.jit(
+            lambda *a: refine._refine_theta(cls, *a, max_rounds=2, steps=1))(*args)]
+
+    analytic = refined()
+    monkeypatch.setattr(cls, "lm_analytic", False)
+    jvps = refined()
+    np.testing.assert_allclose(analytic[0], jvps[0], atol=2e-5)
+    np.testing.assert_allclose(analytic[1], jvps[1], rtol=1e-4)
+    assert analytic[2] == jvps[2]
+    assert analytic[1] < float(refine._evaluate(cls, start, points.T, 3 * SIGMA, None, None)[0])
+
+
 @pytest.mark.parametrize("shape", ["plane", "sphere", "cylinder"])
 def test_polish_fits_as_lo_does_without_its_program(shape, monkeypatch):
     # FitOptions.polish: LO's refit on the host after the search. The refinement's

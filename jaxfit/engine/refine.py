@@ -220,8 +220,8 @@ def lo_rounds(cls: type[Model], points, n_valid, threshold, max_rounds: int, ste
 
     def normal_equations(th, weight):
         """The weighted residuals' squared sum, J^T J (P, P) and J^T r (P,) at th, J the
-        residuals' Jacobian through canonicalize (one JVP per parameter, the residuals
-        themselves evaluated once)."""
+        residuals' Jacobian through canonicalize (the shape's ``theta_jacobian`` where
+        ``lm_analytic``, else one JVP per parameter; the residuals evaluated once)."""
         # Through canonicalize: a step must not spend the length of an axis (or a
         # plane's normal), which canonicalize throws away; with it the cone's steps were
         # mostly refused and refinement stalled short of the least-squares fit (noisy
@@ -232,6 +232,10 @@ def lo_rounds(cls: type[Model], points, n_valid, threshold, max_rounds: int, ste
         flat, along = jax.vmap(lambda v: jax.jvp(cls.canonicalize, (th,), (v,)),
                                out_axes=(None, 0))(basis)  # (P,), (P, P)
         flat, along = jax.lax.optimization_barrier((flat, along))
+        if cls.theta_jacobian is not None and cls.lm_analytic:  # (no JVPs to trace)
+            r = cls.theta_residual(flat, p, jnp) * weight
+            jt = along @ (jnp.asarray(cls.theta_jacobian(flat, p, jnp)) * weight)  # (P, S)
+            return jnp.sum(r * r), jt @ jt.T, jt @ r
         resid = lambda t: cls.theta_residual(t, p, jnp) * weight  # noqa: E731
         r, jac = jax.vmap(lambda v: jax.jvp(resid, (flat,), (v,)), out_axes=(None, 1))(along)
         return jnp.sum(r * r), jac.T @ jac, jac.T @ r

@@ -25,7 +25,8 @@ needs as class-level functions:
   refit (a shape whose ``canonicalize`` takes no ``xp`` is not refitted there).
 - ``theta_jacobian(theta, p, xp) -> (P, ...)`` (optional, else None): the derivatives
   of ``theta_residual`` by each entry of theta at theta (not through ``canonicalize``);
-  the final float64 refit takes its Jacobian from it instead of P forward differences.
+  the final float64 refit takes its Jacobian from it instead of P forward differences,
+  and LO's steps instead of P JVPs (``lm_analytic``).
 - ``least_squares(points, weights) -> theta`` (optional, else None): the weighted
   geometric least-squares fit (points (S, 3), weights (S,)) in closed form; refinement
   uses it instead of Levenberg-Marquardt steps.
@@ -170,6 +171,11 @@ class Model:
     #: ``engine.refine.LM_STEPS``); a shape whose rounds converge in fewer sets fewer,
     #: since a group of clouds steps until its slowest has (docs/engine.md).
     lm_steps: ClassVar[int | None] = None
+    #: Whether LO's Levenberg-Marquardt steps take their Jacobian from ``theta_jacobian``
+    #: (where the shape has one) rather than from JVPs of ``theta_residual``: less to
+    #: trace, the same fits; off where the JVPs compile faster (the box's refinement,
+    #: docs/engine.md "Session 37").
+    lm_analytic: ClassVar[bool] = True
     #: field name -> (trailing shape, kind), the kind saying how it maps under scaling.
     field_specs: ClassVar[dict[str, tuple[tuple[int, ...], str]]]
 
