@@ -104,6 +104,23 @@ class Cone(Model):
         return xp.cos(theta[6]) * rho - xp.sin(theta[6]) * t
 
     @staticmethod
+    def theta_jacobian(theta, p, xp):
+        # e = cos(a) rho - sin(a) t (d = p - apex, t = d . w): d rho / d apex = -(d - t w) /
+        # rho, d rho / d w = -t d / rho, d t / d apex = -w, d t / d w = d.
+        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
+        t = dx * theta[3] + dy * theta[4] + dz * theta[5]
+        rho2 = dx * dx + dy * dy + dz * dz - t * t
+        # (zero where theta_residual clamps rho^2, as its own derivative is there)
+        inv = xp.where(rho2 > 1e-30, -1.0 / xp.sqrt(xp.maximum(rho2, 1e-30)), 0.0)
+        cos, sin = xp.cos(theta[6]), xp.sin(theta[6])
+        along = cos * t * inv - sin
+        return xp.stack([cos * (dx - t * theta[3]) * inv + sin * theta[3],
+                         cos * (dy - t * theta[4]) * inv + sin * theta[4],
+                         cos * (dz - t * theta[5]) * inv + sin * theta[5],
+                         dx * along, dy * along, dz * along,
+                         -sin * xp.sqrt(xp.maximum(rho2, 1e-30)) - cos * t])
+
+    @staticmethod
     def canonicalize(theta, xp=jnp):
         # A refinement step must not leave (0, pi/2): past either end it is no cone.
         axis, _ = g.safe_normalize(theta[3:6], xp)
