@@ -84,7 +84,7 @@ class Box(Model):
     default_estimator: ClassVar[str] = "oriented"
     reads_support: ClassVar[bool] = True
     num_params: ClassVar[int] = 12
-    lm_analytic: ClassVar[bool] = False  # (its JVPs compile ~0.05-0.1 s faster)
+    lm_analytic: ClassVar[bool] = False  # (its refinement compiles faster with the JVPs)
     field_specs: ClassVar = {
         "center": ((3,), POINT),
         "rotation": ((3, 3), INVARIANT),
