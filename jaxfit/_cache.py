@@ -238,6 +238,24 @@ def compile_notice() -> str | None:
             "a few seconds per primitive)")
 
 
+_notice: list = []  # ``announce``'s notice, until a first call prints it
+
+
+def announce(notice: str | None) -> None:
+    """Print ``notice`` (``compile_notice``'s, or None for none) on stderr once, when the
+    process's first ``Stored`` call is about to trace or compile a program: a run that
+    stops before (bad input, a missing file) does not say it compiles."""
+    _notice[:] = [] if notice is None else [notice]
+
+
+def _announce() -> None:
+    try:
+        notice = _notice.pop()  # (atomic: one thread prints it)
+    except IndexError:
+        return
+    print(notice, file=sys.stderr, flush=True)
+
+
 #: Sub-folder of jaxfit's cache folder that holds the ``Stored`` kernels' programs, in one
 #: folder per jaxfit source (a program traced from other code is never read).
 EXPORTED = "exported"
@@ -330,6 +348,8 @@ class Stored:
 
     def __call__(self, *args, **kwargs):
         if _enabled_dir is None:
+            if _notice:
+                _announce()
             _run_after_export()
             return self.jitted(*args, **kwargs)
         dyn_args = tuple(a for i, a in enumerate(args) if i not in self.static_positions)
@@ -369,6 +389,8 @@ class Stored:
     def _first_call(self, signature, kernel, leaves, tree, args, kwargs, dyn_args,
                     dyn_kwargs):
         """A call whose program may have to be read, exported or compiled."""
+        if _notice:
+            _announce()
         if kernel is None:
             kernel = self.kernels[signature] = self._kernel(signature, args, kwargs, leaves,
                                                             tree)

@@ -647,10 +647,11 @@ def main(argv=None) -> int:
         args = _parser().parse_args(argv)
         _check_flags(args)
         _check_outputs(args)
-        # (batch: its workers compile, its progress says so; warmup: compiling is its job)
-        notice = None if args.command in ("batch", "warmup") else _cache.compile_notice()
-        if notice is not None:
-            print(notice, file=sys.stderr, flush=True)
+        # (batch: its workers compile, its progress says so; warmup: compiling is its job;
+        # the notice shows when the first program is about to compile, not before the
+        # input is read)
+        _cache.announce(None if args.command in ("batch", "warmup") else
+                        _cache.compile_notice())
         status = args.run(args) or 0
         sys.stdout.flush()  # a closed pipe shows here, not in Python's exit
     except SystemExit as exit_:  # --help, --version, a usage error
@@ -674,6 +675,8 @@ def main(argv=None) -> int:
         print(f"jaxfit: error: {type(err).__name__}: {_one_line(err)} (set {DEBUG_ENV}=1 "
               "for the traceback)", file=sys.stderr)
         return 1
+    finally:
+        _cache.announce(None)  # (a run that never compiled leaves no notice behind)
     return status
 
 

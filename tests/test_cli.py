@@ -137,6 +137,27 @@ def test_an_unexpected_error_is_one_line(tmp_path, capsys, monkeypatch):
 
 
 
+def test_the_compile_notice_waits_for_a_compile(tmp_path, capsys, monkeypatch):
+    """The first-run notice shows when a program is about to compile: a run that stops
+    on its input says only what is wrong, and leaves no notice for later calls."""
+    from jaxfit import _cache
+
+    monkeypatch.setattr(_cache, "compile_notice", lambda: "jaxfit: compiling kernels (test)")
+    bad = tmp_path / "bad.xyz"
+    bad.write_text("1 2 3\n4 five 6\n")
+    assert main(["fit", str(bad), "--shape", "plane"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxfit: error: non-numeric value") and "compiling" not in err
+    assert _cache._notice == []
+    _cache.announce("jaxfit: compiling kernels (test)")
+    try:  # (a first call of a program this process has not run prints it, once)
+        _cache._announce()
+        _cache._announce()
+    finally:
+        _cache.announce(None)
+    assert capsys.readouterr().err.count("compiling kernels (test)") == 1
+
+
 @pytest.mark.slow
 def test_a_first_run_says_it_compiles_and_a_second_does_not(tmp_path):
     """A fresh machine's first CLI run compiles for seconds: it says so once, on stderr,
