@@ -293,6 +293,22 @@ def axial_radial(points, origin, axis):
     return t, np.sqrt(w0 ** 2 + w1 ** 2 + w2 ** 2)
 
 
+def line_terms(theta, p):
+    """(dx, dy, dz, t, rho2) of points p (3 coordinates, each (...)) about the line
+    through theta[0:3] along theta[3:6] (a cylinder's or cone's theta, the direction not
+    necessarily unit): the offsets d = p - theta[0:3], t = d . theta[3:6] and
+    rho2 = |d|^2 - t^2, in the order the residuals and their Jacobians share."""
+    dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
+    t = dx * theta[3] + dy * theta[4] + dz * theta[5]
+    return dx, dy, dz, t, dx * dx + dy * dy + dz * dz - t * t
+
+
+def negative_inverse_root(rho2, xp):
+    """-1 / sqrt(rho2), 0 where the residuals clamp rho2 at 1e-30 (their derivative is
+    0 there too)."""
+    return xp.where(rho2 > 1e-30, -1.0 / xp.sqrt(xp.maximum(rho2, 1e-30)), 0.0)
+
+
 def offsets(points, origin):
     """points (N, 3) - origin (3,) as float64, in points' memory order (the layout
     ``v @ axis`` sums by), written column by column (see ``axial_radial``)."""

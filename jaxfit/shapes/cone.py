@@ -98,20 +98,16 @@ class Cone(Model):
     def theta_residual(theta, p, xp):
         # e = |p - apex| sin(phi - half_angle), phi the angle between p - apex and the axis,
         # expanded so that no arccos is needed: cos(a) |v x axis| - sin(a) (v . axis).
-        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
-        t = dx * theta[3] + dy * theta[4] + dz * theta[5]
-        rho = xp.sqrt(xp.maximum(dx * dx + dy * dy + dz * dz - t * t, 1e-30))
+        _, _, _, t, rho2 = g.line_terms(theta, p)
+        rho = xp.sqrt(xp.maximum(rho2, 1e-30))
         return xp.cos(theta[6]) * rho - xp.sin(theta[6]) * t
 
     @staticmethod
     def theta_jacobian(theta, p, xp):
         # e = cos(a) rho - sin(a) t (d = p - apex, t = d . w): d rho / d apex = -(d - t w) /
         # rho, d rho / d w = -t d / rho, d t / d apex = -w, d t / d w = d.
-        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
-        t = dx * theta[3] + dy * theta[4] + dz * theta[5]
-        rho2 = dx * dx + dy * dy + dz * dz - t * t
-        # (zero where theta_residual clamps rho^2, as its own derivative is there)
-        inv = xp.where(rho2 > 1e-30, -1.0 / xp.sqrt(xp.maximum(rho2, 1e-30)), 0.0)
+        dx, dy, dz, t, rho2 = g.line_terms(theta, p)
+        inv = g.negative_inverse_root(rho2, xp)
         cos, sin = xp.cos(theta[6]), xp.sin(theta[6])
         along = cos * t * inv - sin
         return xp.stack([cos * (dx - t * theta[3]) * inv + sin * theta[3],

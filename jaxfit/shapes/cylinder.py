@@ -72,19 +72,14 @@ class Cylinder(Model):
 
     @staticmethod
     def theta_residual(theta, p, xp):
-        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
-        t = dx * theta[3] + dy * theta[4] + dz * theta[5]
-        rho2 = dx * dx + dy * dy + dz * dz - t * t
+        rho2 = g.line_terms(theta, p)[4]
         return xp.sqrt(xp.maximum(rho2, 1e-30)) - theta[6]
 
     @staticmethod
     def theta_jacobian(theta, p, xp):
         # d rho / d centre = -(d - t a) / rho, d rho / d axis = -t d / rho (d = p - c)
-        dx, dy, dz = p[0] - theta[0], p[1] - theta[1], p[2] - theta[2]
-        t = dx * theta[3] + dy * theta[4] + dz * theta[5]
-        rho2 = dx * dx + dy * dy + dz * dz - t * t
-        # (zero where theta_residual clamps rho^2, as its own derivative is there)
-        inv = xp.where(rho2 > 1e-30, -1.0 / xp.sqrt(xp.maximum(rho2, 1e-30)), 0.0)
+        dx, dy, dz, t, rho2 = g.line_terms(theta, p)
+        inv = g.negative_inverse_root(rho2, xp)
         ti = t * inv
         return xp.stack([(dx - t * theta[3]) * inv, (dy - t * theta[4]) * inv,
                          (dz - t * theta[5]) * inv, dx * ti, dy * ti, dz * ti,
