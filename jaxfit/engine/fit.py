@@ -140,7 +140,7 @@ def started_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
 
     def finish(max_hypotheses: int | None = None) -> list[FitResult | None]:
         lowered = checked if max_hypotheses is None else lower(checked, cls, max_hypotheses)
-        for part, (thetas, drawn, status) in run(max_hypotheses):
+        for part, (thetas, drawn, status) in run(lowered):
             # (while the next parts are searched: ``loop.searches``)
             # (not ``clouds``: ``named`` reads the call's count from it)
             searched = [prepared[j] for j in part]

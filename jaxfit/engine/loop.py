@@ -166,16 +166,16 @@ def parts(sizes, groups, cores: int = 1) -> list[tuple[list[int], int, int | Non
 def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, seed,
              which=None, start: bool = False, separate: bool = False):
     """The search of the prepared clouds with the checked ``options``, one
-    ``search_group`` per part of ``parts``: returns ``run(max_hypotheses=None)``, a
+    ``search_group`` per part of ``parts``: returns ``run(lowered=None)``, a
     generator of (part, (theta, drawn, status)) in the parts' order: the part's clouds
     (indices into ``clouds``), the best theta (C, P) of each (NaN where none was valid;
     with ``options.polish`` the best batch's ``cls.lo_starts`` best (C, S, P), NaN where
     invalid, for ``refine.host_lo`` to refine each), hypotheses drawn (C,) and the Status
     (C,) of each. ``key`` is the call's JAX key, or None with the int ``seed`` it stands
     for; ``which``: each cloud's index in the call (its key is fold_in(key, index);
-    default 0, 1, ...). ``max_hypotheses`` lowers the options' (the first batch does not
-    depend on it). With ``separate``, every cloud is a group of its own, padded as the
-    largest cloud (``fit_batch``'s ``separate``).
+    default 0, 1, ...). ``lowered``: the options with a lower ``max_hypotheses``
+    (``lower``; the first batch does not depend on them). With ``separate``, every cloud
+    is a group of its own, padded as the largest cloud (``fit_batch``'s ``separate``).
 
     Where a group was cut (on the CPU, one device), the parts run one per core at once
     in threads, and the next ones go on while the caller works on the one it was given;
@@ -199,16 +199,15 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
     started = [Search(*arguments(part, options)) for part in todo] if start and not cut \
         else None
 
-    def run(max_hypotheses=None):
-        lowered = options if max_hypotheses is None else lower(options, cls, max_hypotheses)
+    def run(lowered: FitOptions | None = None):
+        lowered = options if lowered is None else lowered
         if cut:
             yield from ((part[0], found) for part, found in in_threads(
                 lambda part: search_group(*arguments(part, lowered)), todo,
                 min(len(todo), count)))
             return
         for k, part in enumerate(todo):
-            yield part[0], (started[k].result(None if lowered is options else lowered)
-                            if started is not None
+            yield part[0], (started[k].result(lowered) if started is not None
                             else search_group(*arguments(part, lowered)))
 
     return run
