@@ -303,10 +303,20 @@ def line_terms(theta, p):
     return dx, dy, dz, t, dx * dx + dy * dy + dz * dz - t * t
 
 
+#: Squared radial distances are clamped here before their root: a point on the axis
+#: has a finite residual and a zero derivative, not a NaN.
+RHO2_FLOOR = 1e-30
+
+
+def radial_distance(rho2, xp):
+    """sqrt(rho2), rho2 clamped at ``RHO2_FLOOR``."""
+    return xp.sqrt(xp.maximum(rho2, RHO2_FLOOR))
+
+
 def negative_inverse_root(rho2, xp):
-    """-1 / sqrt(rho2), 0 where the residuals clamp rho2 at 1e-30 (their derivative is
+    """-1 / ``radial_distance``, 0 where rho2 is clamped (the residual's derivative is
     0 there too)."""
-    return xp.where(rho2 > 1e-30, -1.0 / xp.sqrt(xp.maximum(rho2, 1e-30)), 0.0)
+    return xp.where(rho2 > RHO2_FLOOR, -1.0 / radial_distance(rho2, xp), 0.0)
 
 
 def offsets(points, origin):

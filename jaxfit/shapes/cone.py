@@ -99,7 +99,7 @@ class Cone(Model):
         # e = |p - apex| sin(phi - half_angle), phi the angle between p - apex and the axis,
         # expanded so that no arccos is needed: cos(a) |v x axis| - sin(a) (v . axis).
         _, _, _, t, rho2 = g.line_terms(theta, p)
-        rho = xp.sqrt(xp.maximum(rho2, 1e-30))
+        rho = g.radial_distance(rho2, xp)
         return xp.cos(theta[6]) * rho - xp.sin(theta[6]) * t
 
     @staticmethod
@@ -114,7 +114,7 @@ class Cone(Model):
                          cos * (dy - t * theta[4]) * inv + sin * theta[4],
                          cos * (dz - t * theta[5]) * inv + sin * theta[5],
                          dx * along, dy * along, dz * along,
-                         -sin * xp.sqrt(xp.maximum(rho2, 1e-30)) - cos * t])
+                         -sin * g.radial_distance(rho2, xp) - cos * t])
 
     @staticmethod
     def canonicalize(theta, xp=jnp):

@@ -73,7 +73,7 @@ class Cylinder(Model):
     @staticmethod
     def theta_residual(theta, p, xp):
         rho2 = g.line_terms(theta, p)[4]
-        return xp.sqrt(xp.maximum(rho2, 1e-30)) - theta[6]
+        return g.radial_distance(rho2, xp) - theta[6]
 
     @staticmethod
     def theta_jacobian(theta, p, xp):
