@@ -77,11 +77,15 @@ def cloud(points, name: str = "points", limit: float | None = MAX_COORDINATE) ->
 
 def points_for(points, cls: type[Model]) -> np.ndarray:
     arr = cloud(points)
-    if arr.shape[0] < cls.sample_size:
-        raise ValueError(
-            f"too few points: a {cls.name} needs at least {cls.sample_size}, got {arr.shape[0]}"
-        )
+    enough_points(arr.shape[0], cls)
     return arr
+
+
+def enough_points(count: int, cls: type[Model]):
+    """Raises where ``count`` points are fewer than a minimal sample of cls."""
+    if count < cls.sample_size:
+        raise ValueError(
+            f"too few points: a {cls.name} needs at least {cls.sample_size}, got {count}")
 
 
 def normals_for(normals, points: np.ndarray):

@@ -63,7 +63,8 @@ import numpy as np
 
 from . import _checks
 from .engine import FitOptions, default_threshold
-from .engine.fit import started_batch
+from .engine.cloud import shared
+from .engine.fit import started_shared
 from .io.inputs import converted
 from .normals import distinct_inverse, distinct_rows, kd_tree, pair_normals
 from .shapes import Model, trimesh_scene
@@ -826,8 +827,9 @@ def _round(ctx: _Context, groups, rnd):
     # so the device runs the later shapes' while the host works on the earlier ones.
     # The most complex shape is finished first: each simpler one's search is then capped
     # where it could only find models that matter (``_cap``).
+    prepared = _shared(ctx, samples)  # (once for every shape)
     started = [_candidates(ctx, ctx.classes[s], samples, groups, _seed(ctx, rnd, s),
-                           start=True) for s in range(count)]
+                           start=True, prepared=prepared) for s in range(count)]
     per_shape = [None] * count
     for s in reversed(range(count)):
         per_shape[s] = started[s](_cap(ctx, ctx.classes[s], per_shape[s + 1:], samples))
@@ -999,24 +1001,37 @@ def _refit_options(fit_options: dict) -> dict:
     return {**fit_options, "max_hypotheses": REFIT_HYPOTHESES}
 
 
+def _shared(ctx: _Context, fit_on) -> list:
+    """The points cloud[fit_on[g]] of each group with their normals, prepared for every
+    shape at once (``cloud.shared``); None where they coincide (no shape fits them)."""
+    out = []
+    for sample in fit_on:
+        try:
+            out.append(shared(ctx.cloud.take(sample, axis=0), ctx.normals.take(sample, axis=0),
+                              ctx.threshold))
+        except _checks.FitError:
+            out.append(None)
+    return out
+
+
 def _candidates(ctx: _Context, cls, fit_on, groups, seed: int, fit_options=None,
-                start: bool = False):
+                start: bool = False, prepared=None):
     """Per group: (model, compatible indices into the cloud, cost, inliers among the
     fitted points) of shape cls fitted to the points cloud[fit_on[g]], its compatible
     points taken from cloud[groups[g]] (``_largest`` of them is its support); None where
     no model could be fitted. One ``fit_batch`` call (seed ``seed``, ``fit_options``,
-    default the context's) for all groups. With ``start``, the call's first batch is
+    default the context's) for all groups, on their ``_shared`` clouds (``prepared``, made
+    here if not given). With ``start``, the call's first batch is
     dispatched and ``finish(max_hypotheses=None)`` returned, which gives that list
     (``max_hypotheses``: a lower count than the options', ``_cap``)."""
     out = [None] * len(groups)
     which = [g for g, sample in enumerate(fit_on) if len(sample) >= cls.sample_size]
     if not which:
         return (lambda max_hypotheses=None: out) if start else out
-    fits = started_batch(
-        [ctx.cloud.take(fit_on[g], axis=0) for g in which], cls,
-        normals=[ctx.normals.take(fit_on[g], axis=0) for g in which],
-        thresholds=ctx.threshold, key=seed, skip_failures=True, start=start, separate=True,
-        **(ctx.fit_options if fit_options is None else fit_options))
+    prepared = _shared(ctx, fit_on) if prepared is None else prepared
+    fits = started_shared(
+        [prepared[g] for g in which], cls, key=seed, skip_failures=True, start=start,
+        separate=True, **(ctx.fit_options if fit_options is None else fit_options))
 
     def finish(max_hypotheses=None):
         for g, result in zip(which, fits(max_hypotheses), strict=True):

@@ -68,7 +68,7 @@ class _Stop(Exception):
 
 
 def test_candidates_skip_lo_unless_the_caller_asks(monkeypatch):
-    """The candidates' fit_batch calls (``started_batch``) get CANDIDATE_OPTIONS (no
+    """The candidates' fit_batch calls (``started_shared``) get CANDIDATE_OPTIONS (no
     LO-RANSAC) under the caller's settings; a FitOptions given whole is passed as it is."""
     import sys
 
@@ -81,7 +81,7 @@ def test_candidates_skip_lo_unless_the_caller_asks(monkeypatch):
         seen.append(kwargs)
         raise _Stop
 
-    monkeypatch.setattr(module, "started_batch", fake)
+    monkeypatch.setattr(module, "started_shared", fake)
     points, _, _ = scene(0, objects=["sphere"], count=300)
     for kwargs in ({}, {"refine": True}, {"options": FitOptions(refine=True)}):
         with pytest.raises(_Stop):

@@ -12,11 +12,19 @@ import pytest
 
 import jaxfit
 from jaxfit.engine import loop
-from jaxfit.engine.cloud import MIN_BUCKET, default_threshold, padded, prepare, prepare_many
+from jaxfit.engine.cloud import (
+    MIN_BUCKET,
+    default_threshold,
+    for_shape,
+    padded,
+    prepare,
+    prepare_many,
+    shared,
+)
 from jaxfit.engine.options import Bounds, FitOptions
 from jaxfit.engine.stopping import AdaptiveStopping, required_hypotheses
 from jaxfit.evaluation.synthetic import demo_cloud
-from jaxfit.shapes import Cylinder, Sphere
+from jaxfit.shapes import Cone, Cylinder, Plane, Sphere
 
 fit_module = importlib.import_module("jaxfit.engine.fit")  # (jaxfit.engine.fit is the function)
 
@@ -74,6 +82,51 @@ def test_prepare_many_in_halves_is_prepare_bit_for_bit(rng, monkeypatch):
         broken[bad] = broken[bad].copy()
         broken[bad][1, 1] = np.nan
         assert prepare_many(broken, Sphere, thresholds, bounds) is None
+
+
+@pytest.mark.parametrize("cls", [Plane, Sphere, Cylinder, Cone])
+@pytest.mark.parametrize("gate", [None, 20.0])
+def test_a_shared_cloud_is_what_prepare_makes_for_each_shape(rng, cls, gate):
+    # detect prepares each group once for every shape (``shared``), and ``for_shape``
+    # must give each shape the Cloud ``prepare`` gives it: normals kept only where the
+    # estimator or the gate reads them, the shape's bounds.
+    points = _clouds(rng, [300])[0]
+    normals = rng.normal(size=(300, 3)) * 5.0
+    checked = FitOptions(normal_angle=gate).check(cls)
+    uses = cls.estimator(checked.estimator).uses_normals
+    base = shared(points, normals, 0.05)
+    made = for_shape(base, cls, uses, checked.bounds)
+    want = prepare(points, cls, normals, 0.05, uses, 0, 0, checked.bounds)
+    for name in ("points", "center", "unit", "columns", "normals"):
+        assert np.array_equal(getattr(made, name), getattr(want, name)), name
+    assert (made.normals is None) == (want.normals is None)
+    assert (made.scale, made.threshold, made.bounds, made.pool, made.wanted) == \
+        (want.scale, want.threshold, want.bounds, want.pool, want.wanted)
+    assert made.gated == want.gated and base.bounds is None  # (the base is left as it was)
+    with pytest.raises(ValueError, match="too few points: a sphere needs at least 4, got 3"):
+        for_shape(shared(points[:3], normals[:3], 0.05), Sphere, True, checked.bounds)
+    with pytest.raises(ValueError, match="needs its normals"):
+        shared(points, None, 0.05)
+
+
+def test_started_shared_gives_what_started_batch_gives():
+    clouds = [demo_cloud("cylinder", count=n, seed=n) for n in (400, 900)]
+    points = [c[0] for c in clouds]
+    normals = [np.asarray(jaxfit.estimate_normals(p, orient=None)) for p in points]
+    flat = np.zeros((30, 3))  # coincident: shared raises, and the call skips it
+    with pytest.raises(jaxfit.FitError):
+        shared(flat, np.ones((30, 3)), 0.05)
+    kw = dict(key=5, skip_failures=True, separate=True, refine=False)
+    for shape in ("plane", "cylinder"):
+        a = fit_module.started_batch(points[:1] + [flat] + points[1:], shape,
+                                     normals=normals[:1] + [np.ones((30, 3))] + normals[1:],
+                                     thresholds=0.05, **kw)()
+        b = fit_module.started_shared([shared(points[0], normals[0], 0.05), None,
+                                       shared(points[1], normals[1], 0.05)], shape, **kw)()
+        assert a[1] is None and b[1] is None
+        for x, y in ((a[0], b[0]), (a[2], b[2])):
+            assert x.model == y.model and np.array_equal(x.inliers, y.inliers)
+            assert (x.cost, x.num_hypotheses, x.status) == (y.cost, y.num_hypotheses, y.status)
 
 
 @pytest.mark.parametrize("shape", ["plane", "sphere"])

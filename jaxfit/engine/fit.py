@@ -10,7 +10,7 @@ import numpy as np
 from .. import _checks
 from ..io.inputs import converted_batch
 from ..shapes import Model
-from .cloud import Cloud, estimate_normals, prepare, prepare_many
+from .cloud import Cloud, estimate_normals, for_shape, prepare, prepare_many
 from .loop import lower, searches
 from .options import Bounds, FitOptions
 from .refine import FINAL_MIN_POINTS, final_refit, host_lo
@@ -110,14 +110,9 @@ def started_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
         thresholds = [thresholds] * len(clouds)  # one for all (checked per cloud)
     if len(thresholds) != len(clouds):
         raise ValueError(f"thresholds must be one per cloud ({len(clouds)}), got {len(thresholds)}")
-    seed = _checks.seed_of(key)
-    if seed is None:  # (an int seed becomes a key only where one is needed)
-        key = _checks.prng_key(key)
+    seed, key = _seed_key(key)
     uses_normals = cls.estimator(checked.estimator).uses_normals
-    def named(i, err):  # the error, naming its cloud when there are several
-        return type(err)(f"cloud {i}: {err}") if len(clouds) > 1 else err
-
-    results: list[FitResult | None] = [None] * len(clouds)
+    named = _naming(len(clouds))
     prepared, which = None, list(range(len(clouds)))  # the clouds of the loop, their places
     if len(clouds) >= MANY_MIN and normals is None and not (uses_normals or checked.bounds.gated):
         prepared = prepare_many(clouds, cls, thresholds, checked.bounds)
@@ -133,6 +128,44 @@ def started_batch(clouds, shape, *, normals=None, thresholds=None, key=0,
                     raise named(i, err) from None
             except ValueError as err:
                 raise named(i, err) from None
+    return _started(cls, checked, prepared, which, len(clouds), key, seed, skip_failures,
+                    start, separate)
+
+
+def started_shared(clouds: list[Cloud], shape, *, key=0, skip_failures: bool = False,
+                   separate: bool = False, options: FitOptions | None = None,
+                   start: bool = False, **settings):
+    """``started_batch`` of clouds made by ``cloud.shared`` (checked, in their frames,
+    with their normals; None for one that failed it, whose result is None): each shape's
+    Cloud is ``cloud.for_shape`` of them, so a caller that fits several shapes to the same
+    clouds (detect's groups) prepares them once."""
+    cls = _checks.model_class(shape)
+    checked = FitOptions.build(options, **settings).check(cls)
+    uses_normals = cls.estimator(checked.estimator).uses_normals
+    seed, key = _seed_key(key)
+    which = [i for i, c in enumerate(clouds) if c is not None]
+    prepared = [for_shape(clouds[i], cls, uses_normals, checked.bounds) for i in which]
+    return _started(cls, checked, prepared, which, len(clouds), key, seed, skip_failures,
+                    start, separate)
+
+
+def _seed_key(key):
+    """(int seed or None, key): an int seed becomes a key only where one is needed."""
+    seed = _checks.seed_of(key)
+    return seed, (_checks.prng_key(key) if seed is None else key)
+
+
+def _naming(count: int):
+    """The error of cloud i, naming it when a call has several clouds."""
+    return lambda i, err: type(err)(f"cloud {i}: {err}") if count > 1 else err
+
+
+def _started(cls: type[Model], checked: FitOptions, prepared: list[Cloud], which: list[int],
+             count: int, key, seed, skip_failures: bool, start: bool, separate: bool):
+    """``started_batch`` from its prepared clouds (``which``: each one's place among the
+    call's ``count`` clouds)."""
+    named = _naming(count)
+    results: list[FitResult | None] = [None] * count
     if not prepared:
         return lambda max_hypotheses=None: results
     estimate_normals(prepared)
