@@ -513,7 +513,7 @@ def test_large_cloud_normals_come_from_a_support_and_are_no_worse():
     def angles(n):
         return np.degrees(np.arccos(np.clip(np.abs(np.sum(n[on] * truth, axis=1)), 0, 1)))
 
-    assert on.sum() > 1000
+    assert on.sum() > 0.5 * len(c.pool)  # (the pool is ~70 % surface points)
     assert np.median(angles(c.normals)) <= np.median(angles(everywhere))
     assert np.median(angles(c.normals)) < 5.0
 

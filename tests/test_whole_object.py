@@ -9,8 +9,9 @@ import trimesh
 from jaxfit import Box, Cylinder, Sphere
 from jaxfit.decomposition.boxdecomp import mvbb
 from jaxfit.decomposition.measure import Scorer, parts_score
-from jaxfit.decomposition.parts import Candidate, Part, SharedNormals, fits
+from jaxfit.decomposition.parts import MAX_FIT_POINTS, Candidate, Part, SharedNormals, fits
 from jaxfit.decomposition.psda import _splits_better, decompose, load_source
+from jaxfit.engine.cloud import NORMAL_POOL
 
 
 def _surface(model, count, seed):
@@ -56,17 +57,22 @@ def test_two_balls_as_two_parts_beat_one_ball_around_both():
 
 @pytest.mark.slow
 def test_shared_normals_give_the_same_fits():
-    # The whole-object check's fit of a 2048-point sample (a lone cloud: fitted twice).
+    # The whole-object check's fit of a sample (a lone cloud: fitted twice) of the
+    # engine's pool size, where it estimates every point's normal itself.
     can = Cylinder(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.033, 0.1)
-    sample = _surface(can, 2048, 0)
+    sample = _surface(can, NORMAL_POOL, 0)
     shared = SharedNormals([sample])
     assert shared.of(Sphere) is None  # the sphere's estimator reads no normals
     normals = shared.of(Cylinder)
-    assert normals is not None and normals[0].shape == (2048, 3)
+    assert normals is not None and normals[0].shape == (NORMAL_POOL, 3)
     (alone,) = fits([sample], Cylinder, [0.002], 0)
     (given,) = fits([sample], Cylinder, [0.002], 0, normals)
     assert given.num_inliers == alone.num_inliers
     assert np.allclose(given.model.theta(), alone.model.theta())
+    # A sample of up to MAX_FIT_POINTS shares every point's normal; a larger one none.
+    assert SharedNormals([_surface(can, MAX_FIT_POINTS, 1)]).of(Cylinder)[0].shape == \
+        (MAX_FIT_POINTS, 3)
+    assert SharedNormals([_surface(can, MAX_FIT_POINTS + 1, 1)]).of(Cylinder) is None
 
 
 @pytest.mark.slow

@@ -150,19 +150,21 @@ def _threshold(box: Box, fraction: float) -> float:
     return fraction * float(np.linalg.norm(box.extents))
 
 def sample_normals(samples) -> list:
-    """(M_i, 3) normals of each sample (M_i, 3), estimated as ``fit_batch`` estimates
-    those it is not given (``normals_at_many`` on all the points, the engine's
-    neighbourhood): computed once, they serve the fits of every primitive, where each
-    ``fit_batch`` call would estimate them again (45 of the 200 ms of a warm decompose
-    of the pyvista sphere). Only for samples of at most ``NORMAL_POOL`` points, where the
-    engine estimates every point's normal: the same normals, which ``fit_batch``
-    renormalises (~1e-16) as it does any it is given, so the fits are the same up to
-    rounding (docs/decomposition.md: where that changed a result)."""
-    from ..engine.cloud import NORMAL_NEIGHBOURS, NORMAL_POOL
+    """(M_i, 3) normals of every point of each sample (M_i, 3), estimated as ``fit_batch``
+    estimates those it is not given (``normals_at_many``, the engine's neighbourhood):
+    computed once, they serve the fits of every primitive, where each ``fit_batch`` call
+    would estimate them again (45 of the 200 ms of a warm decompose of the pyvista
+    sphere). Samples have at most ``MAX_FIT_POINTS`` points. Up to ``NORMAL_POOL``
+    points these are the engine's own normals, which ``fit_batch`` renormalises (~1e-16)
+    as it does any it is given, so the fits are the same up to rounding
+    (docs/decomposition.md: where that changed a result); a larger sample's fits, given
+    every point's normal, draw from every point where the engine would draw from a pool
+    of NORMAL_POOL (as they did while the pool was 2048: docs/engine.md, "Session 38")."""
+    from ..engine.cloud import NORMAL_NEIGHBOURS
     from ..normals import normals_at_many
 
-    if any(len(s) > NORMAL_POOL for s in samples):
-        raise ValueError(f"samples must have at most {NORMAL_POOL} points to share normals")
+    if any(len(s) > MAX_FIT_POINTS for s in samples):
+        raise ValueError(f"samples must have at most {MAX_FIT_POINTS} points to share normals")
     return normals_at_many(list(samples), [np.arange(len(s)) for s in samples],
                            [min(NORMAL_NEIGHBOURS, len(s)) for s in samples])
 

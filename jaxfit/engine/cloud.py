@@ -21,9 +21,10 @@ MIN_BUCKET = 1024
 #: Default threshold as a fraction of the cloud's bounding-box diagonal.
 DEFAULT_THRESHOLD_FRACTION = 0.005
 #: Oriented estimators draw their samples from a random pool of at most this many points,
-#: the only ones whose normals are estimated (when none are given): ~2048^2 distinct
-#: pairs are plenty, and estimating every normal of a large cloud cost seconds.
-NORMAL_POOL = 2048
+#: the only ones whose normals are estimated (when none are given): ~512^2 distinct pairs
+#: are plenty, and the normals were 40 % of a 1e3-point cylinder fit at 2048 (the same
+#: errors either way: docs/engine.md, "Session 38").
+NORMAL_POOL = 512
 #: Neighbours of the PCA normals estimated for a fit.
 NORMAL_NEIGHBOURS = 16
 #: In a cloud of more points the pool's neighbours are looked for among the pool and
