@@ -153,7 +153,7 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
     elif normals is None:
         if len(cloud) > NORMAL_POOL:
             # (derived here only: its key costs a dispatch)
-            rng = np.random.default_rng(normals_key_data(_checks.prng_key(key), index))
+            rng = np.random.default_rng(normals_key_data(key, index))
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
             if len(cloud) > NORMAL_SUPPORT:  # (the pool and NORMAL_SUPPORT draws, distinct)
                 taken = np.zeros(len(cloud), bool)
