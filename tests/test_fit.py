@@ -126,7 +126,7 @@ def test_keys_made_in_numpy_are_jax_fold_ins():
         assert np.array_equal(keys.normals_key_data(key, 5),
                               jax.random.key_data(keys.normals_key(key, 5)))
         for cloud in (0, 5, 2**31 - 1):  # (an int seed's, in NumPy)
-            assert np.array_equal(keys.normals_key_data(int(seed), cloud),
+            assert np.array_equal(keys.seed_normals_data(int(seed), cloud),
                                   jax.random.key_data(keys.normals_key(key, cloud)))
     other = jax.random.key(3, impl="rbg")
     made = np.stack([jax.random.key_data(jax.random.fold_in(other, i)) for i in (0, 4)])

@@ -13,7 +13,7 @@ from .. import _checks
 from ..shapes import Model
 from ..shapes import _geometry as g
 from .backend import cores, in_threads
-from .keys import normals_key_data
+from .keys import normals_key_data, seed_normals_data
 from .options import Bounds
 
 #: Smallest point-count bucket; larger clouds pad to the next power of two.
@@ -153,7 +153,9 @@ def prepare(points, cls: type[Model], normals, threshold, uses_normals: bool, ke
     elif normals is None:
         if len(cloud) > NORMAL_POOL:
             # (derived here only: its key costs a dispatch)
-            rng = np.random.default_rng(normals_key_data(key, index))
+            seed = _checks.seed_of(key)
+            rng = np.random.default_rng(normals_key_data(_checks.prng_key(key), index)
+                                        if seed is None else seed_normals_data(seed, index))
             pool = np.sort(rng.choice(len(cloud), NORMAL_POOL, replace=False))
             if len(cloud) > NORMAL_SUPPORT:  # (the pool and NORMAL_SUPPORT draws, distinct)
                 taken = np.zeros(len(cloud), bool)

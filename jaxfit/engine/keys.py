@@ -4,9 +4,10 @@ stream apart (``normals_key``). Results do not depend on call order or on the ca
 
 With JAX's default PRNG (threefry2x32) the cloud keys of an int seed, kept per seed, are
 computed in NumPy (``fold_in_data``: the same bits as ``jax.random.fold_in``), since the
-small program that made them compiled for ~0.1 s in a fresh process; other PRNGs, and
-the keys made on every call (a JAX key's, a normal pool's), take the jitted path (one
-dispatch of ~20 us against ~0.12-0.18 ms in NumPy)."""
+small program that made them compiled for ~0.1 s in a fresh process; so is an int
+seed's normal-pool key (``seed_normals_data``). Other PRNGs, and the keys made on every
+call (a JAX key's), take the jitted path (one dispatch of ~20 us against ~0.12-0.18 ms
+in NumPy)."""
 
 from __future__ import annotations
 
@@ -118,24 +119,24 @@ _normals_data = stored_jit(_normals_key_data)
 
 
 def normals_key_data(key, cloud: int) -> np.ndarray:
-    """``key_data(normals_key(key, cloud))`` as a NumPy array, ``key`` an int seed or a
-    JAX key: for a seed with JAX's default PRNG in NumPy (``fold_in_data``, the same
-    bits), since the stored program compiled for ~0.2 s of a fresh process's first
-    oriented fit of a cloud larger than its pool; else in one dispatch of that program
-    (the two eager fold_ins and key_data cost ~0.3 ms, a tenth of a 1e3-point cylinder
-    fit's host time)."""
-    from .. import _checks
+    """``key_data(normals_key(key, cloud))`` as a NumPy array, in one dispatch of a stored
+    program (the two eager fold_ins and key_data cost ~0.3 ms, a tenth of a 1e3-point
+    cylinder fit's host time); the same bits. An int seed's: ``seed_normals_data``."""
+    return np.asarray(_normals_data(key, np.int32(cloud)))
 
-    seed = _checks.seed_of(key)
-    if seed is not None and jax.config.jax_default_prng_impl == THREEFRY:
-        return _seed_normals_data(seed, int(cloud))
-    return np.asarray(_normals_data(_checks.prng_key(key), np.int32(cloud)))
+
+def seed_normals_data(seed: int, cloud: int) -> np.ndarray:
+    """``normals_key_data`` of the key of an int seed (in [0, 2**32)): with JAX's default
+    PRNG in NumPy (``fold_in_data``, the same bits, kept per seed and cloud, read-only),
+    since the stored program compiled for ~0.2 s of a fresh process's first oriented fit
+    of a cloud larger than its pool; with another PRNG through its key."""
+    if jax.config.jax_default_prng_impl != THREEFRY:
+        return normals_key_data(jax.random.key(seed), cloud)
+    return _seed_normals_data(seed, int(cloud))
 
 
 @functools.lru_cache(maxsize=1024)
 def _seed_normals_data(seed: int, cloud: int) -> np.ndarray:
-    """``normals_key_data`` of an int seed in NumPy, kept per (seed, cloud) (~0.1 ms each,
-    where the stored program's dispatch is ~20 us); read-only."""
     data = fold_in_data(fold_in_data(seed_data(seed), [cloud])[0], [NORMALS_STREAM])[0]
     data.setflags(write=False)
     return data
