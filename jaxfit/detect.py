@@ -827,7 +827,7 @@ def _round(ctx: _Context, groups, rnd):
     # so the device runs the later shapes' while the host works on the earlier ones.
     # The most complex shape is finished first: each simpler one's search is then capped
     # where it could only find models that matter (``_cap``).
-    prepared = _shared(ctx, samples)  # (once for every shape)
+    prepared = _shared(ctx, samples, min(c.sample_size for c in ctx.classes))  # (once)
     started = [_candidates(ctx, ctx.classes[s], samples, groups, _seed(ctx, rnd, s),
                            start=True, prepared=prepared) for s in range(count)]
     per_shape = [None] * count
@@ -1001,11 +1001,16 @@ def _refit_options(fit_options: dict) -> dict:
     return {**fit_options, "max_hypotheses": REFIT_HYPOTHESES}
 
 
-def _shared(ctx: _Context, fit_on) -> list:
+def _shared(ctx: _Context, fit_on, least: int) -> list:
     """The points cloud[fit_on[g]] of each group with their normals, prepared for every
-    shape at once (``cloud.shared``); None where they coincide (no shape fits them)."""
+    shape at once (``cloud.shared``); None where they coincide (no shape fits them) or
+    are fewer than ``least``, the smallest minimal sample of the shapes they serve (those
+    are never fitted, so never checked or prepared)."""
     out = []
     for sample in fit_on:
+        if len(sample) < least:
+            out.append(None)
+            continue
         try:
             out.append(shared(ctx.cloud.take(sample, axis=0), ctx.normals.take(sample, axis=0),
                               ctx.threshold))
@@ -1028,7 +1033,7 @@ def _candidates(ctx: _Context, cls, fit_on, groups, seed: int, fit_options=None,
     which = [g for g, sample in enumerate(fit_on) if len(sample) >= cls.sample_size]
     if not which:
         return (lambda max_hypotheses=None: out) if start else out
-    prepared = _shared(ctx, fit_on) if prepared is None else prepared
+    prepared = _shared(ctx, fit_on, cls.sample_size) if prepared is None else prepared
     fits = started_shared(
         [prepared[g] for g in which], cls, key=seed, skip_failures=True, start=start,
         separate=True, **(ctx.fit_options if fit_options is None else fit_options))
