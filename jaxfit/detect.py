@@ -824,7 +824,8 @@ def _round(ctx: _Context, groups, rnd):
     samples = [_fit_points(group, ctx.fit_points, _rng(ctx, rnd, g))
                for g, group in enumerate(groups)]
     # Every shape's first batch is dispatched at once (it does not depend on the caps),
-    # so the device runs the later shapes' while the host works on the earlier ones.
+    # so a GPU runs the later shapes' while the host works on the earlier ones (on the
+    # CPU a kernel's loops run mostly inside its call: docs/detect.md, session 38).
     # The most complex shape is finished first: each simpler one's search is then capped
     # where it could only find models that matter (``_cap``).
     prepared = _shared(ctx, samples, min(c.sample_size for c in ctx.classes))  # (once)
