@@ -13,11 +13,37 @@ from jaxfit.evaluation.synthetic import composite
 OBJECTS = ("mallet", "lollipop", "hammer", "lamp")
 
 
+#: Keys each object is decomposed with: the lamp's stem meets its base plate in a seam
+#: that leaves 9-18 points on the wrong side on about one key in ten (its height then
+#: 6-8 % off: 2 of keys 0-23 with the kernel's threefry draws, 3 with its hashed ones,
+#: docs/engine.md "Session 39"), so it must be right on most keys, not on one.
+KEYS = {"lamp": (0, 1, 2)}
+
+
 @pytest.fixture(scope="module")
 def measured():
-    return {name: (decompose(composite(name, count=4000, seed=1)[0], method="measured",
-                             key=0), *composite(name, count=4000, seed=1)[1:])
-            for name in OBJECTS}
+    out = {}
+    for name in OBJECTS:
+        points, models, labels = composite(name, count=4000, seed=1)
+        out[name] = ([decompose(points, method="measured", key=k)
+                      for k in KEYS.get(name, (0,))], models, labels)
+    return out
+
+
+def _one_part_per_primitive(result, models, labels) -> str | None:
+    """Why the measured decomposition is not one right part per primitive, or None."""
+    if result.method != "measured" or len(result.parts) != len(models):
+        return f"{result.method}: {len(result.parts)} parts for {len(models)} primitives"
+    for k, model in enumerate(models):
+        counts = [np.sum(labels[p.indices] == k) for p in result.parts]
+        part = result.parts[int(np.argmax(counts))]
+        if part.kind != model.name:
+            return f"the {model.name} became a {part.kind}"
+        if not matches(part.model, model, 0.05):
+            return f"{part.model!r} against {model!r}"
+        if not np.mean(labels[part.indices] == k) > 0.95:
+            return f"the {model.name}'s part holds others' points"
+    return None
 
 
 @pytest.mark.parametrize("bad", [0, -2, 1.5, True, "3"])
@@ -62,15 +88,11 @@ def test_the_thesis_keeps_to_max_parts():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", OBJECTS)
 def test_measured_gives_one_part_per_primitive(measured, name):
-    result, models, labels = measured[name]
-    assert result.method == "measured"
-    assert len(result.parts) == len(models)
-    for k, model in enumerate(models):
-        counts = [np.sum(labels[p.indices] == k) for p in result.parts]
-        part = result.parts[int(np.argmax(counts))]
-        assert part.kind == model.name, (part.kind, model.name)
-        assert matches(part.model, model, 0.05), (part.model, model)
-        assert np.mean(labels[part.indices] == k) > 0.95
+    results, models, labels = measured[name]
+    why = {k: _one_part_per_primitive(r, models, labels)
+           for k, r in zip(KEYS.get(name, (0,)), results, strict=True)}
+    wrong = {k: w for k, w in why.items() if w is not None}
+    assert len(wrong) <= len(why) // 3, wrong  # (one key: none; the lamp's three: one)
 
 
 @pytest.mark.slow
@@ -90,7 +112,7 @@ def test_the_teapot_body_is_one_part_not_slabs(method):
 
 @pytest.mark.slow
 def test_the_split_hierarchy_gives_every_part_count_and_round_trips(measured):
-    result, _, _ = measured["lamp"]
+    result = measured["lamp"][0][0]
     assert len(result.levels) == len(result.parts)
     assert result.levels[-1] == result.parts
     for k, level in enumerate(result.levels, start=1):

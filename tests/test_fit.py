@@ -168,45 +168,6 @@ def test_sample_indices_are_exactly_floor_of_bits_times_n():
     assert np.asarray(uniform_indices(jax.numpy.asarray(words[-1:]), 7))[0] == 6
 
 
-def test_flat_words_are_the_kernels_2d_draws():
-    # The kernel draws its (H, k) sample words flat and reshapes them (a smaller
-    # program): the same values as the 2-d draws for threefry keys, under vmap and with
-    # the partitionable numbering off too; an rbg key draws the 2-d shape itself.
-    from jaxfit.engine.sampling import words
-
-    bits = lambda k, shape: jax.random.bits(k, shape, jax.numpy.uint32)  # noqa: E731
-    keys = jax.random.split(jax.random.key(7), 3)
-    for partitionable in (True, False):
-        with jax.threefry_partitionable(partitionable):
-            for shape in [(256, 2), (256, 3), (512, 4), (16, 256)]:
-                flat = jax.vmap(lambda k: words(k, shape))(keys)  # noqa: B023
-                np.testing.assert_array_equal(
-                    flat, jax.vmap(lambda k: bits(k, shape))(keys))  # noqa: B023
-    other = jax.random.key(7, impl="rbg")
-    np.testing.assert_array_equal(words(other, (256, 3)), bits(other, (256, 3)))
-
-
-def test_support_indices_are_jax_randint():
-    # The box's support indices: randint's values from one threefry over both halves of
-    # the split key, for every count (1 and 2^31 - 1 included), under vmap and with the
-    # partitionable numbering off too; rbg keys call randint itself.
-    from jaxfit.engine.sampling import randint_indices
-
-    keys = jax.random.split(jax.random.key(11), 4)
-    for partitionable in (True, False):
-        with jax.threefry_partitionable(partitionable):
-            for n in (1, 2, 3, 1000, 1009, 2048, 65537, 1_000_003, 2**31 - 1):
-                count = jax.numpy.int32(n)
-                got = jax.jit(jax.vmap(
-                    lambda k: randint_indices(k, (16, 256), count)))(keys)  # noqa: B023
-                want = jax.vmap(
-                    lambda k: jax.random.randint(k, (16, 256), 0, count))(keys)  # noqa: B023
-                np.testing.assert_array_equal(got, want)
-    other = jax.random.key(11, impl="rbg")
-    np.testing.assert_array_equal(randint_indices(other, (4, 8), 100),
-                                  jax.random.randint(other, (4, 8), 0, 100))
-
-
 def test_status_reports_why_the_loop_stopped():
     points, _, _ = demo_cloud("sphere", seed=2)
     assert jaxfit.fit(points, "sphere").status is Status.CONVERGED

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from ..shapes import Model
 from .backend import BESIDE_OPTIONS, REFINE_OPTIONS, jit_tuned, map_leading
 from .refine import DEFAULT_REFINER, LocalOptimizer
-from .sampling import DEFAULT_SAMPLER, Sampler, randint_indices
+from .sampling import DEFAULT_SAMPLER, Sampler, fold_in, uniform_indices, words
 from .scoring import (
     CHUNK,
     DEFAULT_SCORER,
@@ -73,14 +73,15 @@ def _batch_best(cls: type[Model], batch_size: int, points, n_valid, key, thresho
     its kernel skips their scoring pass: one scan loop less to compile).
     """
     est = cls.estimator(estimator)
-    key_sample, key_support = jax.random.split(key)
     n_sample = n_valid if n_sample is None else n_sample
-    idx, distinct = sampler.draw(key_sample, n_sample, batch_size, est.sample_size)
+    idx, distinct = sampler.draw(key, n_sample, batch_size, est.sample_size)
     # A support per group of hypotheses: a batch sharing one had all its box offsets
     # from the same 256 points, and where those missed a thin side face, all missed it.
+    # Its indices are the words of key's stream after the samples' (``sampling``).
     shape = (math.gcd(batch_size, SUPPORT_GROUPS), SUPPORT) if cls.reads_support else \
         (SUPPORT,)
-    support = points[randint_indices(key_support, shape, n_valid)]
+    drawn = words(key, math.prod(shape), batch_size * est.sample_size)
+    support = points[uniform_indices(drawn, n_valid).reshape(shape)]
     thetas, valid = estimate_batch(cls, points[idx], support,
                                    normals[idx] if est.uses_normals else None, estimator)
     valid &= distinct
@@ -134,7 +135,8 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
                      counts: bool = True):
     """``batch_best`` for every cloud: points (C, B, 3), normals (C, B, 3) or None,
     n_valid (C,), n_sample (C,), cloud_keys (C,), threshold (C,), bounds (``Bounds``
-    with a leading (C,) axis); batch b of cloud c uses fold_in(cloud_keys[c], b).
+    with a leading (C,) axis); batch b of cloud c draws from
+    ``sampling.fold_in(cloud_keys[c], b)``.
     Returns each cloud's ``cls.lo_starts`` best: thetas (C, S, P), costs (C, S),
     counts (C, S) (-1 with ``counts=False``), and its valid samples (C,)."""
 
@@ -142,7 +144,7 @@ def _batch_best_many(cls, batch_size, estimator, points, normals, n_valid, n_sam
 
     def one(args):
         p, nrm, n, m, k, t, b = args
-        return _batch_best(cls, batch_size, p, n, jax.random.fold_in(k, batch), t, nrm,
+        return _batch_best(cls, batch_size, p, n, fold_in(k, batch), t, nrm,
                            estimator, cls.lo_starts, m, b, gated, n_chunks, sampler, scorer,
                            counts)
 

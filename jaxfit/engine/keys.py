@@ -1,6 +1,7 @@
 """Where every random choice of a fit comes from: one key per call, cloud i's key
-``fold_in(key, i)``, its batch b ``fold_in(fold_in(key, i), b)``, and its normal pool a
-stream apart (``normals_key``). Results do not depend on call order or on the cache.
+``fold_in(key, i)``, its batch b ``sampling.fold_in(fold_in(key, i), b)`` (in the
+kernel, a keyed hash), and its normal pool a stream apart (``normals_key``). Results do
+not depend on call order or on the cache.
 
 With JAX's default PRNG (threefry2x32) the cloud keys of an int seed, kept per seed, are
 computed in NumPy (``fold_in_data``: the same bits as ``jax.random.fold_in``), since the

@@ -1,25 +1,31 @@
-"""Samplers: which points form each hypothesis's minimal sample.
+"""Samplers: which points form each hypothesis's minimal sample, and the kernel's random
+words.
 
 A sampler is a frozen, hashable object (a static argument of the kernel) whose ``draw``
 is traced into the fused kernel. A new sampler (PROSAC, NAPSAC, ...) is one new class
 with a ``draw`` of the same contract.
+
+The kernel's random words come from ``words`` and ``fold_in`` here: a counter hashed
+with the key's words, where threefry (``jax.random``) is a rolled loop that compiled for
+a third of each kernel's XLA time (docs/engine.md, "Session 39"). Batch b of a cloud
+draws from ``fold_in(cloud_key, b)``: its samples take the stream's first H x k words,
+the box's support the words after them.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
-
-from .keys import THREEFRY
 
 
 class Sampler:
     """Interface: ``draw(key, n_valid, batch_size, sample_size)`` -> indices (H, k) int32
     into the first ``n_valid`` rows of the points, and whether each sample is usable (H,)
-    bool (a sample with repeated indices is masked, never raised)."""
+    bool (a sample with repeated indices is masked, never raised). It reads at most the
+    first H x k ``words`` of key's stream (the kernel draws the box's support after
+    them)."""
 
     def draw(self, key, n_valid, batch_size: int, sample_size: int):  # pragma: no cover
         raise NotImplementedError
@@ -41,8 +47,10 @@ DEFAULT_SAMPLER = UniformSampler()
 
 def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     """Indices (H, k) of H minimal samples among the first n_valid points, drawn in O(k)
-    each (with replacement), and whether each sample's indices are distinct (H,)."""
-    idx = uniform_indices(words(key, (batch_size, sample_size)), n_valid)
+    each (with replacement) from the first H x k ``words`` of key, and whether each
+    sample's indices are distinct (H,)."""
+    idx = uniform_indices(words(key, batch_size * sample_size), n_valid)
+    idx = idx.reshape(batch_size, sample_size)
     distinct = jnp.ones(batch_size, bool)
     for i in range(sample_size):
         for j in range(i + 1, sample_size):
@@ -50,31 +58,32 @@ def draw_samples(key, n_valid, batch_size: int, sample_size: int):
     return idx, distinct
 
 
-def words(key, shape: tuple):
-    """``jax.random.bits(key, shape, jnp.uint32)``, drawn as one flat array and reshaped
-    for a threefry key (the same values: it numbers its words by their flat index), where
-    a 2-d draw's index arithmetic had doubled the compile of the kernel's draws
-    (docs/engine.md, "Session 34"). Other PRNGs draw ``shape`` itself."""
-    if len(shape) < 2 or jax.random.key_impl(key) != THREEFRY:
-        return jax.random.bits(key, shape, jnp.uint32)
-    return jax.random.bits(key, (math.prod(shape),), jnp.uint32).reshape(shape)
+def mix32(x):
+    """Wellons' ``lowbias32`` of uint32 x (any shape), elementwise: a bijective 32-bit
+    hash with full avalanche (xor-shift-multiply)."""
+    x = (x ^ (x >> 16)) * jnp.uint32(0x7FEB352D)
+    x = (x ^ (x >> 15)) * jnp.uint32(0x846CA68B)
+    return x ^ (x >> 16)
 
 
-def randint_indices(key, shape: tuple, n):
-    """``jax.random.randint(key, shape, 0, n, jnp.int32)`` (n >= 1, traced) for a threefry
-    key, the ``words`` of both halves of ``split(key)`` drawn by one threefry (``vmap``)
-    where randint runs two: the same values for a smaller program. (With x64 enabled,
-    randint's default int64 draws other words: these stay the int32 ones.) Other PRNGs
-    call randint."""
-    if jax.random.key_impl(key) != THREEFRY:
-        return jax.random.randint(key, shape, 0, n)
-    high, low = jax.vmap(lambda k: words(k, shape))(jax.random.split(key))
-    # randint's reduction of the two words modulo n, as jax.random writes it
-    span = jnp.maximum(jnp.asarray(n, jnp.int32), 1).astype(jnp.uint32)
-    multiplier = jax.lax.rem(jnp.uint32(1 << 16), span)
-    multiplier = jax.lax.rem(multiplier * multiplier, span)
-    offset = jax.lax.rem(jax.lax.rem(high, span) * multiplier + jax.lax.rem(low, span), span)
-    return offset.astype(jnp.int32)
+def words(key, count: int, offset: int = 0):
+    """(count,) uniform uint32 words of key's stream, counters offset .. offset + count
+    - 1: each counter hashed twice with the key's first two data words (counter-based,
+    as threefry is, in a few integer operations)."""
+    k = jax.random.key_data(key).astype(jnp.uint32)
+    counters = jnp.arange(offset, offset + count, dtype=jnp.uint32)
+    return mix32(mix32(counters ^ k[0]) + k[1])
+
+
+def fold_in(key, data):
+    """The key of ``data`` (an integer scalar) under key, a typed key of the same
+    implementation: ``jax.random.fold_in``'s contract, with ``mix32``. Every word of the
+    key's data is mixed with ``data`` (threefry keys have 2, rbg keys 4)."""
+    k = jax.random.key_data(key).astype(jnp.uint32)
+    d = mix32(jnp.asarray(data).astype(jnp.uint32) + jnp.uint32(0x9E3779B9))
+    salts = jnp.arange(k.shape[-1] - 1, dtype=jnp.uint32) * jnp.uint32(0x85EBCA6B)
+    mixed = jnp.concatenate([mix32(k[:1] ^ d), mix32(k[1:] + mix32((d ^ k[0]) + salts))])
+    return jax.random.wrap_key_data(mixed, impl=jax.random.key_impl(key))
 
 
 def uniform_indices(bits, n):
