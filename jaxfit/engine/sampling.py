@@ -6,8 +6,8 @@ is traced into the fused kernel. A new sampler (PROSAC, NAPSAC, ...) is one new 
 with a ``draw`` of the same contract.
 
 The kernel's random words come from ``words`` and ``fold_in`` here: a counter hashed
-with the key's words, where threefry (``jax.random``) is a rolled loop that compiled for
-a third of each kernel's XLA time (docs/engine.md, "Session 39"). Batch b of a cloud
+with the key's words, where threefry (``jax.random``) is a rolled loop that took a fifth
+to a third of each kernel's XLA compile (docs/engine.md, "Session 39"). Batch b of a cloud
 draws from ``fold_in(cloud_key, b)``: its samples take the stream's first H x k words,
 the box's support the words after them.
 """
