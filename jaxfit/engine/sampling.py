@@ -67,18 +67,20 @@ def mix32(x):
 
 
 def words(key, count: int, offset: int = 0):
-    """(count,) uniform uint32 words of key's stream, counters offset .. offset + count
-    - 1: each counter hashed twice with the key's first two data words (counter-based,
-    as threefry is, in a few integer operations)."""
+    """(count,) uniform uint32 words of the stream of key (one typed key, shape (): map
+    or vmap over many), counters offset .. offset + count - 1: each counter hashed twice
+    with the key's first two data words (counter-based, as threefry is, in a few integer
+    operations)."""
     k = jax.random.key_data(key).astype(jnp.uint32)
     counters = jnp.arange(offset, offset + count, dtype=jnp.uint32)
     return mix32(mix32(counters ^ k[0]) + k[1])
 
 
 def fold_in(key, data):
-    """The key of ``data`` (an integer scalar) under key, a typed key of the same
-    implementation: ``jax.random.fold_in``'s contract, with ``mix32``. Every word of the
-    key's data is mixed with ``data`` (threefry keys have 2, rbg keys 4)."""
+    """The key of ``data`` (an integer scalar) under key (one typed key, shape ()), a key
+    of the same implementation: ``jax.random.fold_in``'s contract for one key, with
+    ``mix32``. Every word of the key's data is mixed with ``data`` (threefry keys have 2,
+    rbg keys 4)."""
     k = jax.random.key_data(key).astype(jnp.uint32)
     d = mix32(jnp.asarray(data).astype(jnp.uint32) + jnp.uint32(0x9E3779B9))
     salts = jnp.arange(k.shape[-1] - 1, dtype=jnp.uint32) * jnp.uint32(0x85EBCA6B)
