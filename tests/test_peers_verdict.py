@@ -58,3 +58,43 @@ def test_a_run_without_peers_says_so():
                                                                          "found": 5}}}])
     assert summary["single_pairs"] == 0 and summary["scene_count"] == 0
     assert any(line.startswith("No peer imported") for line in peers.verdict_markdown(summary))
+
+
+def test_looped_times_each_method_back_to_back_and_judges_by_those_times():
+    calls = []
+
+    def method(name, seconds):
+        def setup(points, shape, threshold, seed):
+            def run():
+                calls.append(name)
+                end = peers.time.perf_counter() + seconds
+                while peers.time.perf_counter() < end:
+                    pass
+            return run, None
+        return setup
+
+    methods = {"jaxfit": method("jaxfit", 0.0002), "cgal": method("cgal", 0.0004),
+               "open3d_1000": method("open3d_1000", 0.09)}  # too slow to loop
+    rows = [{"shape": "plane", "points": 1000, "outliers": 0.3, "methods": {
+        "jaxfit": cell(5.0, angle_deg=0.01), "cgal": {**cell(1.0, angle_deg=0.02),
+                                                       "ratio": 5.0},
+        "open3d_1000": {**cell(90.0, angle_deg=0.02), "ratio": 0.05}}},
+            {"shape": "plane", "points": 100_000, "outliers": 0.3,
+             "methods": {"jaxfit": cell(5.0, angle_deg=0.01)}}]
+    peers.looped(rows, methods, calls=4, turns=2)
+    j, c = rows[0]["methods"]["jaxfit"], rows[0]["methods"]["cgal"]
+    assert 0.15 < j["loop_ms"] < c["loop_ms"] and "loop_ms" not in rows[0]["methods"]["open3d_1000"]
+    assert "loop_ms" not in rows[1]["methods"]["jaxfit"]  # (over LOOP_MAX_POINTS)
+    # per turn: one untimed and 4 timed calls back to back, each method in turn
+    assert calls.count("cgal") == 2 * 5 and "open3d_1000" not in calls
+    assert calls[-10:] == ["jaxfit"] * 5 + ["cgal"] * 5
+    assert c["loop_ratio"] == j["loop_ms"] / c["loop_ms"] < 1
+    # judged by the loop's times: ahead, where the interleaved times say slower
+    loop = peers.verdicts(rows, [], timed="loop_ms")
+    assert loop["single_pairs"] == 1 and loop["single"]["ahead"] == 1
+    assert peers.verdicts(rows, [])["single"]["slower, more accurate"] == 1
+    text = "\n".join(peers.loop_markdown(rows))
+    assert "ahead 1 (the same pairs by the table's times: slower, more accurate 1)" in text
+    table = text[text.index("| shape"):]
+    assert "| plane | 1000 | 30 % |" in table and "100000" not in table
+    assert "CGAL" in table and "Open3D 1000 it" not in table  # (no peer looped: no column)
