@@ -231,6 +231,31 @@ def test_large_medians_from_a_bracket_are_exact():
     assert g.median(v) == 0.5 * (part[:k].max() + part[k])
 
 
+def test_partitions_give_the_same_order_statistics_in_either_form(monkeypatch):
+    """``partitioned`` asks NumPy for a single rank or a repeated one, whichever this CPU
+    runs faster (timed once): the medians and order statistics read from it are the
+    same bits either way, NaNs and ties included, and a sort's."""
+    from jaxfit.shapes import _geometry as g
+
+    assert isinstance(g._repeated_rank(), bool) and len(g._FORM) == 1
+    rng = np.random.default_rng(11)
+    cases = [rng.normal(size=n) for n in (1, 2, 5, 700, 4_096, 7_001, 20_000, 70_000)]
+    cases += [rng.integers(0, 9, 3_000).astype(float), np.sort(rng.random(9_000)),
+              np.where(rng.random(5_000) < 0.1, np.nan, rng.random(5_000))]
+    found = {}
+    for repeated in (False, True):
+        monkeypatch.setattr(g, "_FORM", [repeated])
+        found[repeated] = [(g.median(v), [g.order_statistic(v, r) for r in
+                                          (0, len(v) // 3, len(v) - 1)]) for v in cases]
+    for (a, ranks_a), (b, ranks_b), v in zip(found[False], found[True], cases, strict=True):
+        assert np.array_equal(ranks_a, ranks_b, equal_nan=True)
+        assert np.array_equal(a, b, equal_nan=True)
+        # (against a sort, which puts NaN last as a partition does; np.median gives NaN)
+        ordered, k = np.sort(v), len(v) // 2
+        assert a == (ordered[k] if len(v) % 2 else 0.5 * (ordered[k - 1] + ordered[k]))
+        assert np.array_equal(ranks_a, ordered[[0, len(v) // 3, len(v) - 1]], equal_nan=True)
+
+
 def test_main_interval_skips_only_quantiles_that_cannot_widen_its_bins():
     """The central 90 %'s quantiles are left out where the whole range shows they cannot
     widen the bins; the interval is that of the bins they would have given."""
