@@ -223,6 +223,33 @@ def test_analytic_jacobian_refits_as_the_differences(shape, monkeypatch):
     assert analytic[1] < analytic[2]  # (it moved)
 
 
+def test_plane_refit_in_closed_form_is_its_inliers_least_squares_plane(monkeypatch):
+    # The plane's final refit takes its closed-form fit (``host_least_squares``, from the
+    # moments in J^T J) for Gauss-Newton's steps: each step is the least-squares plane of
+    # the last one's inliers, so where the inliers stop changing it is that of its own
+    # (an SVD of them); in its two steps it lands where Gauss-Newton's two land.
+    cls = REGISTRY["plane"]
+    for seed in range(3):
+        points, theta, _ = noisy("plane", 5000, seed=8 + seed)
+        start = theta + np.random.default_rng(seed).normal(0, 1e-3, theta.shape)
+        closed, cost, first = refine.final_refit(cls, start, points, 3 * SIGMA)
+        assert cost < first  # (it moved)
+        with monkeypatch.context() as m:
+            m.setattr(cls, "host_least_squares", None)
+            steps = refine.final_refit(cls, start, points, 3 * SIGMA)
+        np.testing.assert_allclose(closed, steps[0], atol=1e-8)
+        assert abs(cost - steps[1]) <= 1e-8 * cost and cost <= steps[1] * (1 + 1e-12)
+        settled = refine.final_refit(cls, start, points, 3 * SIGMA, steps=20, min_gain=0.0)[0]
+        inliers = points[np.abs(points @ settled[:3] + settled[3]) < 3 * SIGMA]
+        centre = inliers.mean(axis=0)
+        normal = np.linalg.svd(inliers - centre)[2][-1]
+        normal *= np.sign(normal @ settled[:3])
+        np.testing.assert_allclose(settled[:3], normal, atol=1e-12)
+        np.testing.assert_allclose(settled[3], -normal @ centre, atol=1e-12)
+    # too few points for a plane: no candidate, the start stays
+    assert np.isnan(cls.host_least_squares(np.zeros((4, 4)), theta)).all()
+
+
 def test_lo_steps_with_the_analytic_jacobian_land_where_the_jvps_do(monkeypatch):
     # LO's LM steps take the shape's theta_jacobian (``lm_analytic``) in place of JVPs of
     # theta_residual: the same step up to float32 rounding (one round of one step, which

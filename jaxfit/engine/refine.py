@@ -393,25 +393,28 @@ def _chunks(n: int):
 
 
 def _evaluate(cls, theta, columns, threshold, normals, normal_cos, canonical=None,
-              widen: float = 1.0):
+              widen: float = 1.0, raw: bool = False):
     """MSAC cost () of theta (P,) over the points whose coordinates are columns (3, N)
     (with normals (3, N) or None), the loop's measure (a point gated out on its normal
     costs t^2), and with ``canonical`` the normal equations of the least-squares fit on
     its inliers (with ``widen``, on the points within that many thresholds): J^T J
     (P, P) and J^T r (P,), J through ``canonical`` (the shape's ``theta_jacobian`` times
-    the projection's own Jacobian, else forward differences of the residuals). One pass,
-    ``FINAL_CHUNK`` points at a time, in float64 (the columns contiguous, made once by
-    ``final_refit`` for all its passes: a boolean gather of (N, 3) rows had cost as much
-    as the differences)."""
+    the projection's own Jacobian, else forward differences of the residuals), or with
+    ``raw`` the shape's ``theta_jacobian`` alone (``host_least_squares`` reads its
+    J^T J). One pass, ``FINAL_CHUNK`` points at a time, in float64 (the columns
+    contiguous, made once by ``final_refit`` for all its passes: a boolean gather of
+    (N, 3) rows had cost as much as the differences)."""
     t2, cost, size = threshold * threshold, 0.0, theta.size
     jtj, jtr = np.zeros((size, size)), np.zeros(size)
-    moved = [] if canonical is None else [canonical(theta + FINAL_STEP * e)
-                                          for e in np.eye(size)]
+    equations = canonical is not None
+    moved = [] if not equations or raw else [canonical(theta + FINAL_STEP * e)
+                                             for e in np.eye(size)]
     # (P, P) d canonical / d theta, by differences of P-vectors: with it the points'
     # Jacobian is one analytic pass, where the differences take P residual passes
     chain = None if not moved or cls.theta_jacobian is None else \
         (np.stack(moved) - theta).T / FINAL_STEP
-    step = 1.0 if chain is not None else FINAL_STEP  # (the differences' rows are * step)
+    analytic = raw or chain is not None
+    step = 1.0 if analytic else FINAL_STEP  # (the differences' rows are * step)
     for part in _chunks(columns.shape[1]):
         block = columns[:, part]  # (3, n), each row contiguous
         q = tuple(block)
@@ -423,10 +426,10 @@ def _evaluate(cls, theta, columns, threshold, normals, normal_cos, canonical=Non
             r2 = np.where(np.abs(slope) >= normal_cos, r * r, t2)
         inside = r2 < t2
         cost += float(np.sum(np.fmin(r2, t2)))  # (where(inside, r2, t2), NaN included)
-        if moved:
+        if equations:
             keep = np.flatnonzero(inside if widen == 1.0 else r2 < widen * widen * t2)
             qi, ri = tuple(block.take(keep, axis=1)), r.take(keep)
-            if chain is not None:  # (the projection applied to the sums, at the end)
+            if analytic:  # (with a chain, the projection applied to the sums at the end)
                 jac = cls.theta_jacobian(theta, qi, np)  # (P, M)
             else:
                 jac = np.empty((size, len(keep)))  # (P, M): each row one contiguous write
@@ -446,8 +449,9 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
                 min_gain: float = FINAL_GAIN, columns=None):
     """A least-squares refit of theta (P,) on all the inliers of points (N, 3), in float64
     NumPy (no compiled program): Gauss-Newton steps on the residuals of the current
-    inliers (Levenberg-damped on a refusal), each kept only if the MSAC cost over all
-    points does not rise and the bounds hold.
+    inliers (Levenberg-damped on a refusal), or where the shape has one its closed-form
+    fit to them (``host_least_squares``: the plane), each kept only if the MSAC cost
+    over all points does not rise and the bounds hold.
 
     LO refines on at most LO_POINTS points (in the kernels' float32), so its accuracy
     stops growing with N; this sums over every point, ``FINAL_CHUNK`` at a time.
@@ -473,23 +477,27 @@ def final_refit(cls: type[Model], theta, points, threshold: float, bounds=None,
             None if normals is None else np.ascontiguousarray(np.asarray(normals).T),
             None if normals is None else float(bounds.normal_cos))
     theta = canonical(theta)
-    cost, jtj, jtr = _evaluate(cls, theta, *args, canonical=canonical, widen=widen)
+    # (the closed form reads the points' moments from theta_jacobian's J^T J)
+    closed = cls.host_least_squares if cls.theta_jacobian is not None else None
+    cost, jtj, jtr = _evaluate(cls, theta, *args, canonical=canonical, widen=widen,
+                               raw=closed is not None)
     start, damping = cost, 0.0
     for step_index in range(steps):
         last = step_index == steps - 1  # (its normal equations would go unused)
         diag = np.diag(np.diag(jtj))
-        for _ in range(FINAL_RETRIES):
-            step = -pseudo_solve(jtj + damping * diag, jtr)
-            candidate = canonical(theta + step)
+        # A closed-form fit has one candidate; Gauss-Newton retries with more damping.
+        for _ in range(1 if closed is not None else FINAL_RETRIES):
+            candidate = canonical(closed(jtj, theta) if closed is not None else
+                                  theta - pseudo_solve(jtj + damping * diag, jtr))
             if np.all(np.isfinite(candidate)) and (bounds is None
                                                    or bounds.admits(cls, candidate, np)):
                 found = _evaluate(cls, candidate, *args, canonical=None if last else canonical,
-                                  widen=widen)
+                                  widen=widen, raw=closed is not None)
                 if found[0] <= cost:
                     break
             damping = max(10.0 * damping, 1e-3)
         else:
-            break  # every retry refused: theta stays where it was
+            break  # every candidate refused: theta stays where it was
         gain = cost - found[0]
         theta, (cost, jtj, jtr), damping = candidate, found, 0.1 * damping
         if gain <= min_gain * cost:

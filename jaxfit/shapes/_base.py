@@ -29,7 +29,10 @@ needs as class-level functions:
   and LO's steps instead of P JVPs (``lm_analytic``).
 - ``least_squares(points, weights) -> theta`` (optional, else None): the weighted
   geometric least-squares fit (points (S, 3), weights (S,)) in closed form; refinement
-  uses it instead of Levenberg-Marquardt steps.
+  uses it instead of Levenberg-Marquardt steps. ``host_least_squares(jtj, theta) ->
+  theta`` (optional, else None): the same fit in NumPy float64 from the points' J^T J
+  (``theta_jacobian``'s products, P x P), for the final refit instead of Gauss-Newton
+  steps.
 - ``from_theta(theta, points, inliers, threshold) -> Model``: the bounded model, with
   height / extents / faces fixed from the inliers after the loop (NumPy, float64;
   points an (N, 3) ndarray, inliers an (N,) bool mask).
@@ -232,6 +235,7 @@ class Model:
         return theta
 
     least_squares = None  # see the module docstring
+    host_least_squares = None  # see the module docstring
     theta_jacobian = None  # see the module docstring
 
     @classmethod

@@ -71,6 +71,20 @@ class Plane(Model):
         normal = g.smallest_eigenvector(scatter)  # (no LAPACK call)
         return jnp.concatenate([normal, -(normal @ centroid)[None]])
 
+    @staticmethod
+    def host_least_squares(jtj, theta):
+        # ``least_squares`` from the moments: the residual's Jacobian is (x, y, z, 1), so
+        # J^T J holds the points' count, sums and second moments; the normal keeps
+        # theta's side (the same plane either way; the refit's steps stay continuous).
+        count = jtj[3, 3]
+        if not count >= 3:  # (no plane through fewer points: the refit refuses NaN)
+            return np.full(4, np.nan)
+        centroid = jtj[:3, 3] / count
+        scatter = jtj[:3, :3] - count * np.outer(centroid, centroid)
+        normal = np.linalg.eigh(scatter)[1][:, 0]
+        normal = normal if normal @ theta[:3] >= 0 else -normal
+        return np.concatenate([normal, [-(normal @ centroid)]])
+
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
         # Unit in float64, the offset with it (as Cylinder's axis: a float32 kernel's
