@@ -264,7 +264,7 @@ _FORM: list[bool] = []  # (whether ``partitioned`` repeats the rank, once timed)
 def _repeated_rank() -> bool:
     """Whether a partition at a repeated rank was the faster form on this CPU: both
     timed on the same 4,096 values, three turns each, the best of each compared
-    (~0.3 ms once per process; either form gives the same order statistics)."""
+    (~0.5 ms once per process; either form gives the same order statistics)."""
     if not _FORM:
         import time
 
