@@ -312,6 +312,34 @@ def test_fit_batch_errors_name_the_cloud():
     assert results[0] is not None and results[1] is None
     with pytest.raises(jaxfit.FitError, match="degenerate"):
         jaxfit.fit_batch([good, line], "plane", max_hypotheses=1024)
+    # several failing: the call's first is named, whichever part of the call finished first
+    with pytest.raises(jaxfit.FitError, match="^cloud 1: .*degenerate"):
+        jaxfit.fit_batch([good, line, line[::-1].copy()], "plane", max_hypotheses=1024)
+
+
+def test_parts_in_threads_come_as_they_finish():
+    import threading
+    import time
+
+    from jaxfit.engine.backend import in_threads
+
+    release = threading.Event()
+
+    def work(item):  # item 0 waits until item 1 is done
+        if item == 0:
+            release.wait(5.0)
+        return item * 10
+
+    seen = []
+    for item, out in in_threads(work, [0, 1], 2, ordered=False):
+        seen.append((item, out))
+        release.set()
+    assert seen == [(1, 10), (0, 0)]
+    release.clear()
+    start = time.perf_counter()
+    threading.Timer(0.05, release.set).start()
+    assert list(in_threads(work, [0, 1], 2)) == [(0, 0), (1, 10)]  # (in order: waits)
+    assert time.perf_counter() - start >= 0.04
 
 
 @pytest.mark.parametrize("name", ["cylinder", "cone"])

@@ -139,15 +139,16 @@ def placer(devices):
     return lambda array: jax.device_put(array, sharding)
 
 
-def in_threads(fn, items, workers: int):
-    """(item, fn(item)) for each of items, in their order, ``workers`` calls at a time in
-    threads (JAX's calls and XLA's compiler release the GIL); the caller may stop early:
-    the calls not yet started are dropped."""
+def in_threads(fn, items, workers: int, ordered: bool = True):
+    """(item, fn(item)) for each of items, in their order (or, not ``ordered``, as the
+    calls finish), ``workers`` calls at a time in threads (JAX's calls and XLA's compiler
+    release the GIL); the caller may stop early: the calls not yet started are dropped."""
     with concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="jaxfit") as pool:
         pending = [pool.submit(fn, item) for item in items]
+        of = dict(zip(pending, items, strict=True))
         try:
-            for item, future in zip(items, pending, strict=True):
-                yield item, future.result()
+            for future in (pending if ordered else concurrent.futures.as_completed(pending)):
+                yield of[future], future.result()
         finally:
             for future in pending:
                 future.cancel()

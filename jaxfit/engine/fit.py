@@ -173,6 +173,7 @@ def _started(cls: type[Model], checked: FitOptions, prepared: list[Cloud], which
 
     def finish(max_hypotheses: int | None = None) -> list[FitResult | None]:
         lowered = checked if max_hypotheses is None else lower(checked, cls, max_hypotheses)
+        failed = None  # (index, FitError) of the call's first cloud that failed
         for part, (thetas, drawn, status) in run(lowered):
             # (while the next parts are searched: ``loop.searches``)
             # (not ``clouds``: ``named`` reads the call's count from it)
@@ -190,8 +191,11 @@ def _started(cls: type[Model], checked: FitOptions, prepared: list[Cloud], which
                     results[i] = result(cls, searched[k], thetas[k], drawn[k], status[k],
                                         lowered)
                 except _checks.FitError as err:
-                    if not skip_failures:
-                        raise named(i, err) from None
+                    # (raised once every part is in: parts may finish in any order)
+                    if not skip_failures and (failed is None or i < failed[0]):
+                        failed = (i, err)
+        if failed is not None:
+            raise named(*failed) from None
         return results
 
     return finish

@@ -167,7 +167,8 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
              which=None, start: bool = False, separate: bool = False):
     """The search of the prepared clouds with the checked ``options``, one
     ``search_group`` per part of ``parts``: returns ``run(lowered=None)``, a
-    generator of (part, (theta, drawn, status)) in the parts' order: the part's clouds
+    generator of (part, (theta, drawn, status)) for each part, in the parts' order or,
+    where they run in threads, as they finish: the part's clouds
     (indices into ``clouds``), the best theta (C, P) of each (NaN where none was valid;
     with ``options.polish`` the best batch's ``cls.lo_starts`` best (C, S, P), NaN where
     invalid, for ``refine.host_lo`` to refine each), hypotheses drawn (C,) and the Status
@@ -178,7 +179,8 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
     is a group of its own, padded as the largest cloud (``fit_batch``'s ``separate``).
 
     Where a group was cut (on the CPU, one device), the parts run one per core at once
-    in threads, and the next ones go on while the caller works on the one it was given;
+    in threads, and the next ones go on while the caller works on the one it was given
+    (the first to finish: a part whose hard clouds take more batches holds up no other);
     else one after another in the caller's thread, and with ``start`` each part's first
     batch is dispatched now (``Search``), before ``run`` is called.
     """
@@ -204,7 +206,7 @@ def searches(cls: type[Model], options: FitOptions, clouds: list[Cloud], key, se
         if cut:
             yield from ((part[0], found) for part, found in in_threads(
                 lambda part: search_group(*arguments(part, lowered)), todo,
-                min(len(todo), count)))
+                min(len(todo), count), ordered=False))
             return
         for k, part in enumerate(todo):
             yield part[0], (started[k].result(lowered) if started is not None
