@@ -407,12 +407,15 @@ def _evaluate(cls, theta, columns, threshold, normals, normal_cos, canonical=Non
     t2, cost, size = threshold * threshold, 0.0, theta.size
     jtj, jtr = np.zeros((size, size)), np.zeros(size)
     equations = canonical is not None
-    moved = [] if not equations or raw else [canonical(theta + FINAL_STEP * e)
-                                             for e in np.eye(size)]
+    moved = []  # (P, P): canonical of theta with each entry nudged (one call if batched)
+    if equations and not raw:
+        nudged = theta + FINAL_STEP * np.eye(size)
+        moved = canonical(nudged) if cls.batched_canonical else \
+            np.stack([canonical(t) for t in nudged])
     # (P, P) d canonical / d theta, by differences of P-vectors: with it the points'
     # Jacobian is one analytic pass, where the differences take P residual passes
-    chain = None if not moved or cls.theta_jacobian is None else \
-        (np.stack(moved) - theta).T / FINAL_STEP
+    chain = None if not len(moved) or cls.theta_jacobian is None else \
+        (moved - theta).T / FINAL_STEP
     analytic = raw or chain is not None
     step = 1.0 if analytic else FINAL_STEP  # (the differences' rows are * step)
     for part in _chunks(columns.shape[1]):

@@ -22,7 +22,9 @@ needs as class-level functions:
 - ``canonicalize(theta, xp=jnp)``: projects a flat parameter vector back onto the valid
   set (unit axes, positive radius) after a refinement step. Differentiable: refinement
   differentiates the residual through it; with ``xp=numpy`` it serves the final float64
-  refit (a shape whose ``canonicalize`` takes no ``xp`` is not refitted there).
+  refit (a shape whose ``canonicalize`` takes no ``xp`` is not refitted there). Where
+  ``batched_canonical`` (default False) it also takes thetas (..., P), each row as it
+  alone would: the final refit then projects its P differenced thetas in one call.
 - ``theta_jacobian(theta, p, xp) -> (P, ...)`` (optional, else None): the derivatives
   of ``theta_residual`` by each entry of theta at theta (not through ``canonicalize``);
   the final float64 refit takes its Jacobian from it instead of P forward differences,
@@ -179,6 +181,8 @@ class Model:
     #: trace, the same fits; off where the JVPs compile faster (the box's refinement,
     #: docs/engine.md "Session 37").
     lm_analytic: ClassVar[bool] = True
+    #: Whether ``canonicalize`` takes thetas (..., P) (see the module docstring).
+    batched_canonical: ClassVar[bool] = False
     #: field name -> (trailing shape, kind), the kind saying how it maps under scaling.
     field_specs: ClassVar[dict[str, tuple[tuple[int, ...], str]]]
 

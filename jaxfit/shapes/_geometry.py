@@ -82,15 +82,15 @@ def circle3(a, b, c):
 
 
 def inverse_transpose3(m, xp=jnp):
-    """inv(m).T of a (3, 3) matrix m: its cofactors (row i the cross product of rows i + 1
-    and i + 2) over its determinant; no LAPACK call (``xp``: jax.numpy or numpy). A
-    singular m gives inf or NaN, as an inverse would."""
+    """inv(m).T of (3, 3) matrices m (..., 3, 3): their cofactors (row i the cross product
+    of rows i + 1 and i + 2) over their determinants; no LAPACK call (``xp``: jax.numpy
+    or numpy). A singular m gives inf or NaN, as an inverse would."""
     # Rows and columns rolled, whole arrays at a time: as ``cross`` of rows or entry by
     # entry, the box's refinement compiled XLA fusions by the dozen.
-    after, second = _roll3(m, 1, 0, xp), _roll3(m, 2, 0, xp)
-    cof = (_roll3(after, 1, 1, xp) * _roll3(second, 2, 1, xp)
-           - _roll3(after, 2, 1, xp) * _roll3(second, 1, 1, xp))
-    return cof / xp.sum(m[0] * cof[0])
+    after, second = _roll3(m, 1, -2, xp), _roll3(m, 2, -2, xp)
+    cof = (_roll3(after, 1, -1, xp) * _roll3(second, 2, -1, xp)
+           - _roll3(after, 2, -1, xp) * _roll3(second, 1, -1, xp))
+    return cof / xp.sum(m[..., 0, :] * cof[..., 0, :], axis=-1)[..., None, None]
 
 
 def _roll3(a, by: int, axis: int, xp):

@@ -84,6 +84,7 @@ class Box(Model):
     default_estimator: ClassVar[str] = "oriented"
     reads_support: ClassVar[bool] = True
     num_params: ClassVar[int] = 12
+    batched_canonical: ClassVar[bool] = True
     lm_analytic: ClassVar[bool] = False  # (its refinement compiles faster with the JVPs)
     field_specs: ClassVar = {
         "center": ((3,), POINT),
@@ -135,9 +136,10 @@ class Box(Model):
         # Nearest rotation to the refined normals (the polar factor, ``polar``):
         # refinement differentiates through this, and the SVD's derivative is undefined
         # at a rotation (three equal singular values).
-        rot = theta[:9].reshape(3, 3)
+        lead = theta.shape[:-1]
+        rot = theta[..., :9].reshape(lead + (3, 3))
         rot = _polar_steps(rot, xp) if xp is np else polar(rot)
-        return xp.concatenate([rot.reshape(-1), theta[9:]])
+        return xp.concatenate([rot.reshape(lead + (9,)), theta[..., 9:]], axis=-1)
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):

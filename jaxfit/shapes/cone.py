@@ -50,6 +50,7 @@ class Cone(Model):
     default_estimator: ClassVar[str] = "oriented"
     axis_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 7
+    batched_canonical: ClassVar[bool] = True
     min_hypotheses: ClassVar[int] = 16384  # see Model.min_hypotheses
     field_specs: ClassVar = {
         "apex": ((3,), POINT),
@@ -119,9 +120,9 @@ class Cone(Model):
     @staticmethod
     def canonicalize(theta, xp=jnp):
         # A refinement step must not leave (0, pi/2): past either end it is no cone.
-        axis, _ = g.safe_normalize(theta[3:6], xp)
-        angle = xp.clip(theta[6:], MIN_ANGLE, np.pi / 2 - MIN_ANGLE)
-        return xp.concatenate([theta[:3], axis, angle])
+        axis, _ = g.safe_normalize(theta[..., 3:6], xp)
+        angle = xp.clip(theta[..., 6:], MIN_ANGLE, np.pi / 2 - MIN_ANGLE)
+        return xp.concatenate([theta[..., :3], axis, angle], axis=-1)
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):

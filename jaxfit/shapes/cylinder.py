@@ -45,6 +45,7 @@ class Cylinder(Model):
     radius_index: ClassVar[int] = 6
     axis_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 7
+    batched_canonical: ClassVar[bool] = True
     # Three steps a round are as accurate as five on the thesis suite (docs/engine.md).
     lm_steps: ClassVar[int] = 3
     min_hypotheses: ClassVar[int] = 8192  # see Model.min_hypotheses
@@ -87,8 +88,8 @@ class Cylinder(Model):
 
     @staticmethod
     def canonicalize(theta, xp=jnp):
-        axis, _ = g.safe_normalize(theta[3:6], xp)
-        return xp.concatenate([theta[:3], axis, xp.abs(theta[6:])])
+        axis, _ = g.safe_normalize(theta[..., 3:6], xp)
+        return xp.concatenate([theta[..., :3], axis, xp.abs(theta[..., 6:])], axis=-1)
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):

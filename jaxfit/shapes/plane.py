@@ -38,6 +38,7 @@ class Plane(Model):
     pointwise_theta: ClassVar[bool] = True
     axis_index: ClassVar[int] = 0  # the normal
     num_params: ClassVar[int] = 4
+    batched_canonical: ClassVar[bool] = True
     field_specs: ClassVar = {
         "normal": ((3,), INVARIANT),
         "offset": ((), INVARIANT),  # handled in rescaled()
@@ -60,8 +61,9 @@ class Plane(Model):
 
     @staticmethod
     def canonicalize(theta, xp=jnp):
-        normal, length = g.safe_normalize(theta[:3], xp)
-        return xp.concatenate([normal, theta[3:] / xp.where(length > 0, length, 1.0)])
+        normal, length = g.safe_normalize(theta[..., :3], xp)
+        return xp.concatenate([normal, theta[..., 3:] / xp.where(length > 0, length,
+                                                                 1.0)[..., None]], axis=-1)
 
     @staticmethod
     def least_squares(points, weights):

@@ -34,6 +34,7 @@ class Sphere(Model):
     oriented_sample_size: ClassVar[int] = 2
     radius_index: ClassVar[int] = 3
     num_params: ClassVar[int] = 4
+    batched_canonical: ClassVar[bool] = True
     pointwise_theta: ClassVar[bool] = True
     # The MSAC cost of a sphere has one basin near the truth: one start is as accurate
     # as four at a quarter of the refinement (measurements: docs/shapes.md).
@@ -77,7 +78,7 @@ class Sphere(Model):
 
     @staticmethod
     def canonicalize(theta, xp=jnp):
-        return xp.concatenate([theta[:3], xp.abs(theta[3:])])
+        return xp.concatenate([theta[..., :3], xp.abs(theta[..., 3:])], axis=-1)
 
     @classmethod
     def from_theta(cls, theta, points, inliers, threshold):
