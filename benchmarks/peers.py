@@ -328,7 +328,7 @@ def single_setting(shape, n, share, clouds, repeats, methods, accuracy_clouds=0)
     once = set()  # methods timed by their warm run alone (SLOW_S)
     measures = {m: [] for m in names}
     for c in range(max(clouds, accuracy_clouds)):
-        seed = cloud_seed(c, shape, n, share)
+        seed = cloud_seed(c, n, share)
         points, truth, model, threshold = cloud(shape, n, share, seed)
         runs = {}
         for m in names:
@@ -367,8 +367,9 @@ def single_setting(shape, n, share, clouds, repeats, methods, accuracy_clouds=0)
     return row
 
 
-def cloud_seed(c: int, shape: str, n: int, share: float) -> int:
-    """The seed of a setting's cloud c (``cloud``; the shape draws its own pose)."""
+def cloud_seed(c: int, n: int, share: float) -> int:
+    """The seed of cloud c of a setting of n points and that outlier share (``cloud``;
+    the shape draws its own pose from it)."""
     return 1000 * c + int(100 * share) + n
 
 
@@ -384,7 +385,7 @@ def looped(rows, methods: dict, calls: int = LOOP_CALLS, turns: int = LOOP_TURNS
         shape, n, share = row["shape"], row["points"], row["outliers"]
         if n > LOOP_MAX_POINTS:
             continue
-        seed = cloud_seed(0, shape, n, share)
+        seed = cloud_seed(0, n, share)
         points, _, _, threshold = cloud(shape, n, share, seed)
         runs = {m: methods[m](points, shape, threshold, seed)[0]
                 for m, v in row["methods"].items() if v["ms"] <= 1e3 * LOOP_SLOW_S}

@@ -255,14 +255,16 @@ def test_partitions_give_the_same_order_statistics_in_either_form(monkeypatch):
     same bits either way, NaNs and ties included, and a sort's."""
     from jaxfit.shapes import _geometry as g
 
-    assert isinstance(g._repeated_rank(), bool) and len(g._FORM) == 1
+    chosen = g._repeated_rank()
+    assert isinstance(chosen, bool) and g._repeated_rank() is chosen
+    assert g._repeated_rank.cache_info().currsize == 1  # (timed once, then kept)
     rng = np.random.default_rng(11)
     cases = [rng.normal(size=n) for n in (1, 2, 5, 700, 4_096, 7_001, 20_000, 70_000)]
     cases += [rng.integers(0, 9, 3_000).astype(float), np.sort(rng.random(9_000)),
               np.where(rng.random(5_000) < 0.1, np.nan, rng.random(5_000))]
     found = {}
     for repeated in (False, True):
-        monkeypatch.setattr(g, "_FORM", [repeated])
+        monkeypatch.setattr(g, "_repeated_rank", lambda repeated=repeated: repeated)
         found[repeated] = [(g.median(v), [g.order_statistic(v, r) for r in
                                           (0, len(v) // 3, len(v) - 1)]) for v in cases]
     for (a, ranks_a), (b, ranks_b), v in zip(found[False], found[True], cases, strict=True):

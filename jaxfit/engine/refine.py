@@ -407,14 +407,14 @@ def _evaluate(cls, theta, columns, threshold, normals, normal_cos, canonical=Non
     t2, cost, size = threshold * threshold, 0.0, theta.size
     jtj, jtr = np.zeros((size, size)), np.zeros(size)
     equations = canonical is not None
-    moved = []  # (P, P): canonical of theta with each entry nudged (one call if batched)
+    moved = None  # (P, P): canonical of theta with each entry nudged (one call if batched)
     if equations and not raw:
         nudged = theta + FINAL_STEP * np.eye(size)
         moved = canonical(nudged) if cls.batched_canonical else \
             np.stack([canonical(t) for t in nudged])
     # (P, P) d canonical / d theta, by differences of P-vectors: with it the points'
     # Jacobian is one analytic pass, where the differences take P residual passes
-    chain = None if not len(moved) or cls.theta_jacobian is None else \
+    chain = None if moved is None or cls.theta_jacobian is None else \
         (moved - theta).T / FINAL_STEP
     analytic = raw or chain is not None
     step = 1.0 if analytic else FINAL_STEP  # (the differences' rows are * step)

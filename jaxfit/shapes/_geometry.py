@@ -6,6 +6,7 @@ inside ``vmap`` on degenerate samples: callers get a validity flag instead of an
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -258,25 +259,21 @@ def partitioned(values, rank: int) -> np.ndarray:
     return np.partition(values, (rank, rank) if _repeated_rank() else rank)
 
 
-_FORM: list[bool] = []  # (whether ``partitioned`` repeats the rank, once timed)
-
-
+@functools.cache
 def _repeated_rank() -> bool:
     """Whether a partition at a repeated rank was the faster form on this CPU: both
     timed on the same 4,096 values, three turns each, the best of each compared
-    (~0.5 ms once per process; either form gives the same order statistics)."""
-    if not _FORM:
-        import time
+    (~0.5 ms once per process, kept; either form gives the same order statistics)."""
+    import time
 
-        values = np.random.default_rng(0).random(4096)
-        best = {False: math.inf, True: math.inf}
-        for _ in range(3):
-            for repeated in best:
-                start = time.perf_counter()
-                np.partition(values, (2048, 2048) if repeated else 2048)
-                best[repeated] = min(best[repeated], time.perf_counter() - start)
-        _FORM.append(best[True] < best[False])
-    return _FORM[0]
+    values = np.random.default_rng(0).random(4096)
+    best = {False: math.inf, True: math.inf}
+    for _ in range(3):
+        for repeated in best:
+            start = time.perf_counter()
+            np.partition(values, (2048, 2048) if repeated else 2048)
+            best[repeated] = min(best[repeated], time.perf_counter() - start)
+    return best[True] < best[False]
 
 
 #: Values from which ``_middle`` first narrows to a bracket of a strided sample, and
