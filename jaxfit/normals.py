@@ -143,13 +143,11 @@ def knn_many(clouds, queries, ks, distances: bool = False) -> list:
     for i in sorted(set(range(len(clouds))) - set(small)):
         out[i] = knn(clouds[i], ks[i], queries[i], distances=distances)
     if small:
-        from concurrent.futures import ThreadPoolExecutor
+        from .engine.backend import cores, in_threads
 
-        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-            found = pool.map(lambda i: knn(clouds[i], ks[i], queries[i], workers=1,
-                                           distances=distances), small)
-            for i, hood in zip(small, found, strict=True):
-                out[i] = hood
+        for i, hood in in_threads(lambda i: knn(clouds[i], ks[i], queries[i], workers=1,
+                                                distances=distances), small, cores()):
+            out[i] = hood
     return out
 
 

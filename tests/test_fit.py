@@ -342,6 +342,50 @@ def test_parts_in_threads_come_as_they_finish():
     assert time.perf_counter() - start >= 0.04
 
 
+def test_in_threads_keeps_its_threads_and_runs_nested_calls_inline():
+    import threading
+    import time
+
+    from jaxfit.engine.backend import in_threads
+
+    def thread(_):
+        time.sleep(0.01)  # (long enough that both threads take items)
+        return threading.current_thread()
+
+    first = {out for _, out in in_threads(thread, range(6), 2)}
+    second = {out for _, out in in_threads(thread, range(6), 2)}
+    assert len(first) == 2 and first == second  # the same two threads serve both calls
+
+    def nested(item):  # a pool thread's own call: run in it, not queued behind itself
+        inner = in_threads(lambda k: threading.current_thread(), [item, item + 1], 2)
+        return threading.current_thread(), list(inner)
+
+    outs = [out for _, out in in_threads(nested, [0, 10], 2)]
+    assert [[k for k, _ in inner] for _, inner in outs] == [[0, 1], [10, 11]]
+    assert all(t is outer for outer, inner in outs for _, t in inner)
+
+
+def test_in_threads_stopped_early_waits_for_the_running_calls():
+    import time
+
+    from jaxfit.engine.backend import in_threads
+
+    finished = []
+
+    def work(item):
+        time.sleep(0.05 if item else 0.0)
+        finished.append(item)
+        return item
+
+    calls = in_threads(work, [0, 1, 2, 3], 1)
+    assert next(calls) == (0, 0)
+    calls.close()  # item 1 may be running (then waited for); 2 and 3 are dropped
+    done = list(finished)
+    assert done in ([0], [0, 1])
+    time.sleep(0.15)
+    assert finished == done
+
+
 @pytest.mark.parametrize("name", ["cylinder", "cone"])
 def test_oriented_estimator_needs_far_fewer_hypotheses_on_incomplete_models(name):
     from jaxfit.evaluation.scenarios import make

@@ -10,6 +10,7 @@ from __future__ import annotations
 import concurrent.futures
 import functools
 import os
+import threading
 import warnings
 
 import jax
@@ -139,16 +140,51 @@ def placer(devices):
     return lambda array: jax.device_put(array, sharding)
 
 
+#: The thread pools of ``in_threads``, one per worker count, kept for the process: each
+#: call starting threads of its own had them start with fresh malloc arenas, whose memory
+#: glibc maps and faults in again (a 1000 x 500-point ``fit_batch`` took 4,000-12,000
+#: page faults and ~30 % more time in its first ~8 calls; docs/engine.md, "Session 41").
+_pools: dict[int, concurrent.futures.ThreadPoolExecutor] = {}
+_pools_lock = threading.Lock()
+_worker = threading.local()  # .busy: this thread is one of the pools'
+
+
+def thread_pool(workers: int) -> concurrent.futures.ThreadPoolExecutor:
+    """The process's pool of ``workers`` threads (made on first use; a forked child makes
+    its own: the parent's threads do not exist there)."""
+    with _pools_lock:
+        pool = _pools.get(workers)
+        if pool is None:
+            pool = _pools[workers] = concurrent.futures.ThreadPoolExecutor(
+                workers, thread_name_prefix="jaxfit", initializer=_mark_worker)
+        return pool
+
+
+def _mark_worker():
+    _worker.busy = True
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_pools.clear)
+
+
 def in_threads(fn, items, workers: int, ordered: bool = True):
     """(item, fn(item)) for each of items, in their order (or, not ``ordered``, as the
-    calls finish), ``workers`` calls at a time in threads (JAX's calls and XLA's compiler
-    release the GIL); the caller may stop early: the calls not yet started are dropped."""
-    with concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="jaxfit") as pool:
-        pending = [pool.submit(fn, item) for item in items]
-        of = dict(zip(pending, items, strict=True))
-        try:
-            for future in (pending if ordered else concurrent.futures.as_completed(pending)):
-                yield of[future], future.result()
-        finally:
-            for future in pending:
-                future.cancel()
+    calls finish), ``workers`` calls at a time in the threads of ``thread_pool`` (JAX's
+    calls and XLA's compiler release the GIL); the caller may stop early: the calls not
+    yet started are dropped, and those running are waited for. Called from one of the
+    pools' threads, the calls run in it, one after another (a pool's thread waiting on
+    its own pool could wait for ever)."""
+    if getattr(_worker, "busy", False):
+        yield from ((item, fn(item)) for item in items)
+        return
+    pool = thread_pool(workers)
+    pending = [pool.submit(fn, item) for item in items]
+    of = dict(zip(pending, items, strict=True))
+    try:
+        for future in (pending if ordered else concurrent.futures.as_completed(pending)):
+            yield of[future], future.result()
+    finally:
+        for future in pending:
+            future.cancel()
+        concurrent.futures.wait(pending)
