@@ -25,7 +25,6 @@ Measurements: docs/normals.md.
 
 from __future__ import annotations
 
-import concurrent.futures
 import functools
 import numbers
 import os
@@ -364,21 +363,22 @@ def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None,
     few = count < PAIR_LEAST
     sparse = np.flatnonzero(few)
     k = min(k, m)
-    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxfit") as pool:
-        # (the sparse points' neighbours, a KD-tree query that releases the GIL, found
-        # meanwhile: ~6 ms for the 10 % outliers of a 23k-point scene)
-        hood = pool.submit(
-            lambda: knn(points, k, points.take(sparse, axis=0)) if tree is None
-            else tree.query(points.take(sparse, axis=0), k=k)[1]) if len(sparse) else None
-        cov = None if neighbour_sums is None else _product_scatter(points, neighbour_sums,
-                                                                   count)
-        if cov is None:
-            cov = _pair_scatter(points, pairs, count)
-        out = np.empty((m, 3))
-        out[~few] = smallest_eigenvectors(cov[~few])
-        if hood is not None:
-            out[sparse] = pca_normals(points, np.reshape(hood.result(), (len(sparse), k)),
-                                      passes=0)
+    from .engine.backend import submitted
+
+    # (the sparse points' neighbours, a KD-tree query that releases the GIL, found
+    # meanwhile: ~6 ms for the 10 % outliers of a 23k-point scene)
+    hood = submitted(
+        lambda: knn(points, k, points.take(sparse, axis=0)) if tree is None
+        else tree.query(points.take(sparse, axis=0), k=k)[1]) if len(sparse) else None
+    cov = None if neighbour_sums is None else _product_scatter(points, neighbour_sums,
+                                                               count)
+    if cov is None:
+        cov = _pair_scatter(points, pairs, count)
+    out = np.empty((m, 3))
+    out[~few] = smallest_eigenvectors(cov[~few])
+    if hood is not None:
+        out[sparse] = pca_normals(points, np.reshape(hood.result(), (len(sparse), k)),
+                                  passes=0)
     return out
 
 

@@ -168,6 +168,19 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_pools.clear)
 
 
+def submitted(fn) -> concurrent.futures.Future:
+    """fn() started in a thread of ``thread_pool(1)``, to be read by ``.result()``; run
+    here and now where this thread is one of the pools' (as ``in_threads``)."""
+    if not getattr(_worker, "busy", False):
+        return thread_pool(1).submit(fn)
+    future = concurrent.futures.Future()
+    try:
+        future.set_result(fn())
+    except Exception as err:  # (raised by .result(), as from a thread)
+        future.set_exception(err)
+    return future
+
+
 def in_threads(fn, items, workers: int, ordered: bool = True):
     """(item, fn(item)) for each of items, in their order (or, not ``ordered``, as the
     calls finish), ``workers`` calls at a time in the threads of ``thread_pool`` (JAX's
