@@ -565,3 +565,22 @@ def test_normal_gate_keeps_the_far_faces_of_a_box():
     gated = jaxfit.fit(case.points, "box", normal_angle=30, **kwargs)
     assert plain.inliers[case.inliers].mean() > 0.95
     assert gated.inliers[case.inliers].mean() > 0.98 * plain.inliers[case.inliers].mean()
+
+
+def test_submitted_runs_in_the_pool_or_inline_from_a_pool_thread():
+    import threading
+
+    from jaxfit.engine.backend import in_threads, submitted
+
+    here = threading.current_thread()
+    assert submitted(threading.current_thread).result() is not here
+
+    def from_worker(_):
+        own = threading.current_thread()
+        fails = submitted(lambda: 1 / 0)
+        return own, submitted(threading.current_thread).result(), fails
+
+    [(_, (own, ran, fails))] = list(in_threads(from_worker, [0], 1))
+    assert ran is own  # (the one-thread pool's thread waiting on itself would hang)
+    with pytest.raises(ZeroDivisionError):
+        fails.result()
