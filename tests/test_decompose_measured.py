@@ -14,10 +14,12 @@ OBJECTS = ("mallet", "lollipop", "hammer", "lamp")
 
 
 #: Keys each object is decomposed with: the lamp's stem meets its base plate in a seam
-#: that leaves 9-18 points on the wrong side on about one key in ten (its height then
-#: 6-8 % off: 2 of keys 0-23 with the kernel's threefry draws, 3 with its hashed ones,
-#: docs/engine.md "Session 39"), so it must be right on most keys, not on one.
-KEYS = {"lamp": (0, 1, 2)}
+#: that leaves 9-18 points on the wrong side on some keys (its height then 6-8 % off),
+#: and which keys depends on the CPU's float rounding: of keys 0-23, 3 on an AMD EPYC
+#: (0, 3, 21; docs/engine.md "Session 39"), 5 on an Intel Xeon (0, 2, 10, 21, 22;
+#: "Session 41"). So it must be right on two keys in three at least, over nine keys: three
+#: (keys 0-2, at most one wrong) had failed on the Xeon with two.
+KEYS = {"lamp": tuple(range(9))}
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +94,7 @@ def test_measured_gives_one_part_per_primitive(measured, name):
     why = {k: _one_part_per_primitive(r, models, labels)
            for k, r in zip(KEYS.get(name, (0,)), results, strict=True)}
     wrong = {k: w for k, w in why.items() if w is not None}
-    assert len(wrong) <= len(why) // 3, wrong  # (one key: none; the lamp's three: one)
+    assert len(wrong) <= len(why) // 3, wrong  # (one key: none; the lamp's nine: three)
 
 
 @pytest.mark.slow
