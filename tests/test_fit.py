@@ -584,3 +584,30 @@ def test_submitted_runs_in_the_pool_or_inline_from_a_pool_thread():
     assert ran is own  # (the one-thread pool's thread waiting on itself would hang)
     with pytest.raises(ZeroDivisionError):
         fails.result()
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs os.fork")
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # (the child calls no JAX)
+def test_a_forked_child_makes_its_own_thread_pool():
+    import os
+    import signal
+    import time
+
+    from jaxfit.engine import backend
+
+    list(backend.in_threads(lambda k: k, [0, 1], 2))  # (the parent's pool exists)
+    pid = os.fork()
+    if pid == 0:  # the child: the pool's threads stayed in the parent
+        try:
+            ok = not backend._pools and list(backend.in_threads(lambda k: k * 2, [1, 2], 2))
+            os._exit(0 if ok == [(1, 2), (2, 4)] else 1)
+        except BaseException:
+            os._exit(2)
+    deadline = time.monotonic() + 30.0  # (a child waiting on the parent's threads hangs)
+    while (found := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    if found[0] == 0:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        pytest.fail("the forked child hung on the thread pool")
+    assert os.waitstatus_to_exitcode(found[1]) == 0

@@ -164,8 +164,16 @@ def _mark_worker():
     _worker.busy = True
 
 
+def _forget_pools():
+    """In a forked child: no pools (their threads stayed in the parent) and a fresh lock
+    (the parent's may have been held by another thread at the fork)."""
+    global _pools_lock
+    _pools.clear()
+    _pools_lock = threading.Lock()
+
+
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_pools.clear)
+    os.register_at_fork(after_in_child=_forget_pools)
 
 
 def submitted(fn) -> concurrent.futures.Future:
