@@ -611,3 +611,18 @@ def test_a_forked_child_makes_its_own_thread_pool():
         os.waitpid(pid, 0)
         pytest.fail("the forked child hung on the thread pool")
     assert os.waitstatus_to_exitcode(found[1]) == 0
+
+
+def test_the_keys_of_some_slots_are_those_rows_of_all_the_slots_keys():
+    # (made as the whole is, not by indexing a key array: loop._keys)
+    import jax
+
+    from jaxfit.engine.loop import _keys
+
+    for key, seed, which, count, rows, slots_of in (
+            (5, 5, None, 3, 4, [1, 3]),  # the call's first clouds, a padding slot
+            (5, 5, [2, 7, 9], 3, 4, [0, 3]),  # later clouds of a call (separate loops)
+            (jax.random.key(11), None, [4, 1], 2, 2, [1])):  # a JAX key
+        whole = np.asarray(jax.random.key_data(_keys(key, seed, which, count, rows)))
+        some = np.asarray(jax.random.key_data(_keys(key, seed, which, count, rows, slots_of)))
+        assert np.array_equal(some, whole[slots_of])

@@ -127,15 +127,23 @@ def subset_rows(mask: np.ndarray, multiple: int = 1):
     return np.concatenate([live, np.full(size - len(live), live[0])])
 
 
-def _keys(key, seed, which, count: int, rows_count: int):
-    """The (rows_count,) keys of the slots: fold_in(key, index in the call) for each
-    cloud, and padding slots fold_in(key, slot) when the clouds are the call's first ones
-    (one cached dispatch), else the first cloud's key."""
+def _keys(key, seed, which, count: int, rows_count: int, slots_of=None):
+    """The (rows_count,) keys of the slots, or with ``slots_of`` (S,) those of its slots:
+    fold_in(key, index in the call) for each cloud, and padding slots fold_in(key, slot)
+    when the clouds are the call's first ones (one cached dispatch), else the first
+    cloud's key. A subset is made as the whole is, never by indexing the keys: a JAX key
+    array indexed on the host is a chain of eager operations, each compiled in every
+    process (~0.15 s of a first ``fit_batch`` whose hard clouds go on) and ~8 ms a call
+    after (docs/engine.md, "Session 41")."""
     impl = jax.config.jax_default_prng_impl
-    if which is None or list(which) == list(range(count)):
+    first = which is None or list(which) == list(range(count))
+    if first and slots_of is None:
         return (cloud_keys(key, rows_count) if seed is None
                 else seed_cloud_keys(seed, impl, rows_count))
-    indices = [int(i) for i in which] + [int(which[0])] * (rows_count - count)
+    indices = list(range(rows_count)) if first else \
+        [int(i) for i in which] + [int(which[0])] * (rows_count - count)
+    if slots_of is not None:
+        indices = [indices[s] for s in np.asarray(slots_of).tolist()]
     if seed is not None and impl == THREEFRY:
         return seed_keys_at(seed, tuple(indices))
     return keys_at(key if seed is None else _checks.prng_key(seed), indices)
@@ -293,7 +301,9 @@ def _search_steps(cls: type[Model], options: FitOptions, clouds: list[Cloud], ke
         """The per-slot arrays for the rows ``slots_of`` (None: every slot), placed."""
         if slots_of is None:
             return every
-        return jax.tree.map(lambda a: put(a[slots_of]), host)
+        rows = jax.tree.map(lambda a: put(a[slots_of]),
+                            {name: a for name, a in host.items() if name != "keys"})
+        return {**rows, "keys": put(_keys(key, seed, which, count, rows_count, slots_of))}
 
     def lo(theta, cost, arrays):  # LO of the kernel's best (theta, cost) on those slots
         return refine_many(cls, theta, cost, arrays["points"], arrays["n"],
