@@ -33,6 +33,7 @@ import threading
 import numpy as np
 
 from . import _checks
+from .engine.backend import cores, in_threads, submitted
 from .io.inputs import converted
 from .shapes._geometry import column_bounds, offsets
 
@@ -142,8 +143,6 @@ def knn_many(clouds, queries, ks, distances: bool = False) -> list:
     for i in sorted(set(range(len(clouds))) - set(small)):
         out[i] = knn(clouds[i], ks[i], queries[i], distances=distances)
     if small:
-        from .engine.backend import cores, in_threads
-
         for i, hood in in_threads(lambda i: knn(clouds[i], ks[i], queries[i], workers=1,
                                                 distances=distances), small, cores()):
             out[i] = hood
@@ -363,8 +362,6 @@ def pair_normals(points: np.ndarray, pairs: np.ndarray, k: int = 16, tree=None,
     few = count < PAIR_LEAST
     sparse = np.flatnonzero(few)
     k = min(k, m)
-    from .engine.backend import submitted
-
     # (the sparse points' neighbours, a KD-tree query that releases the GIL, found
     # meanwhile: ~6 ms for the 10 % outliers of a 23k-point scene)
     hood = submitted(

@@ -164,6 +164,11 @@ def _mark_worker():
     _worker.busy = True
 
 
+def _in_a_pool() -> bool:
+    """Whether this thread is one of the pools' (then their calls run in it)."""
+    return getattr(_worker, "busy", False)
+
+
 def _forget_pools():
     """In a forked child: no pools (their threads stayed in the parent) and a fresh lock
     (the parent's may have been held by another thread at the fork)."""
@@ -179,7 +184,7 @@ if hasattr(os, "register_at_fork"):
 def submitted(fn) -> concurrent.futures.Future:
     """fn() started in a thread of ``thread_pool(1)``, to be read by ``.result()``; run
     here and now where this thread is one of the pools' (as ``in_threads``)."""
-    if not getattr(_worker, "busy", False):
+    if not _in_a_pool():
         return thread_pool(1).submit(fn)
     future = concurrent.futures.Future()
     try:
@@ -196,7 +201,7 @@ def in_threads(fn, items, workers: int, ordered: bool = True):
     yet started are dropped, and those running are waited for. Called from one of the
     pools' threads, the calls run in it, one after another (a pool's thread waiting on
     its own pool could wait for ever)."""
-    if getattr(_worker, "busy", False):
+    if _in_a_pool():
         yield from ((item, fn(item)) for item in items)
         return
     pool = thread_pool(workers)
