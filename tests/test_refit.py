@@ -276,6 +276,51 @@ def test_lo_steps_with_the_analytic_jacobian_land_where_the_jvps_do(monkeypatch)
     assert analytic[1] < float(refine._evaluate(cls, start, points.T, 3 * SIGMA, None, None)[0])
 
 
+def test_lo_in_a_large_bucket_is_judged_on_all_points(monkeypatch):
+    # In a bucket of at least LO_SUBSET_BUCKET points a round of LO is accepted on the
+    # rows its steps see, and the result is judged against its start on all points: its
+    # cost and inlier count are those over all points, never above the start's, and it
+    # lands where rounds measured on all points land. (The bucket is lowered to 8192
+    # here: a small program to compile.)
+    import jax
+
+    from jaxfit.engine.scoring import score_one
+
+    cls = REGISTRY["plane"]
+    points, theta, _ = noisy("plane", 5000, seed=8)
+    bucket = np.zeros((8192, 3), np.float32)
+    bucket[:5000] = points
+    start = np.asarray(theta + np.random.default_rng(9).normal(0, 2e-2, theta.shape), np.float32)
+    threshold = np.float32(3 * SIGMA)
+
+    def refined():  # (a new function each time: JAX would reuse the first one's trace)
+        return [np.asarray(x) for x in jax.jit(lambda *a: refine._refine_theta(cls, *a))(
+            start, bucket, 5000, threshold)]
+
+    def scored(t):
+        return [np.asarray(x) for x in jax.jit(
+            lambda t: score_one(cls, t, bucket, 5000, threshold))(np.asarray(t, np.float32))]
+
+    monkeypatch.setattr(refine, "LO_SUBSET_BUCKET", 8192)
+    assert refine.lo_subset(8192) and not refine.lo_subset(4096)
+    judged = refined()
+    monkeypatch.setattr(refine, "LO_SUBSET_BUCKET", 1 << 30)
+    every = refined()
+    cost, count = scored(judged[0])
+    assert (judged[1], judged[2]) == (cost, count)
+    assert judged[1] < scored(start)[0]
+    normal = judged[0][:3] / np.linalg.norm(judged[0][:3])
+    assert np.degrees(np.arccos(min(1.0, abs(normal @ every[0][:3]) / np.linalg.norm(
+        every[0][:3])))) < 0.02
+    np.testing.assert_allclose(judged[1], every[1], rtol=1e-3)
+    # A result worse than its start on all points gives the start back, with its score.
+    worse = np.asarray(start + np.float32(0.05), np.float32)
+    back = [np.asarray(x) for x in jax.jit(lambda s, t: refine.lo_judged(
+        cls, s, t, bucket, 5000, threshold))(np.asarray(theta, np.float32), worse)]
+    np.testing.assert_array_equal(back[0], np.asarray(theta, np.float32))
+    assert (back[1], back[2]) == tuple(scored(theta))
+
+
 @pytest.mark.parametrize("shape", ["plane", "sphere", "cylinder"])
 def test_polish_fits_as_lo_does_without_its_program(shape, monkeypatch):
     # FitOptions.polish: LO's refit on the host after the search. The refinement's
