@@ -256,14 +256,13 @@ def lo_rounds(cls: type[Model], points, n_valid, threshold, max_rounds: int, ste
 
     def measured(th):
         """A round's (cost, inlier count): ``score``'s over all points, or in a large
-        bucket (``lo_subset``) over the LM points."""
+        bucket (``lo_subset``) over the LM points (their live ones are a prefix: all, or
+        the first n_valid of a smaller cloud)."""
         if not subset:
             return score_one(cls, th, points, n_valid, threshold, gate, n_chunks, scorer)
-        t2 = threshold * threshold
-        r = cls.theta_residual(th, p, jnp)
-        r2 = jnp.where(agrees(th), r * r, t2)
-        return (jnp.sum(jnp.where(live, scorer.loss(r2, t2), 0.0)),
-                jnp.sum(live & scorer.inlier(r2, t2), dtype=jnp.int32))
+        return score_one(cls, th, sub, jnp.minimum(n_valid, len(rows)), threshold,
+                         None if gate is None else (normals[rows], gate[1]),
+                         len(rows) // CHUNK, scorer)
 
     def normal_equations(th, weight):
         """The weighted residuals' squared sum, J^T J (P, P) and J^T r (P,) at th, J the
