@@ -31,9 +31,9 @@ LO_GAIN = 1e-4
 LO_POINTS = 2048
 #: In buckets of at least this many points a round of LO is accepted when it lowers the
 #: cost over the LO_POINTS rows its steps see, and the rounds' result is judged against
-#: its start on all points once (``lo_judged``): there a round's pass over every point
-#: had been most of LO's time (a plane of 1e5 points: 3.2 ms of LO, 1 ms a round for four
-#: starts), where at 1e4 a round's own fit is (docs/engine.md, "Session 42").
+#: its start on all points once (``lo_judged``): there a round's pass over every point is
+#: most of LO's time, where in smaller ones the round's own fit is (docs/engine.md,
+#: "Session 42").
 LO_SUBSET_BUCKET = 1 << 16
 #: A round's LM steps stop once an accepted step lowers the squared error by less than
 #: LM_GAIN (relative) or after LM_REFUSALS refused steps in a row.
@@ -161,8 +161,8 @@ def lo_judged(cls: type[Model], start, theta, points, n_valid, threshold, gate=N
     """LO's result theta (P,) from ``start`` (P,) on padded points (B, 3), judged on all
     n_valid points: (theta, its cost, inlier count) where its cost is at most the
     start's, else (start, cost, count), so that LO never returns a worse hypothesis
-    than it was given (``scoring.score_one`` of each; ``gate`` and ``n_chunks`` as
-    there; two passes of one hypothesis: one pass of the two had taken 2.5x as long)."""
+    than it was given (``scoring.score_one`` of each, ``gate`` and ``n_chunks`` as
+    there: two hypotheses on the vector axis of one pass ran slower than two passes)."""
     old_cost, old_count = score_one(cls, start, points, n_valid, threshold, gate, n_chunks,
                                     scorer)
     cost, count = score_one(cls, theta, points, n_valid, threshold, gate, n_chunks, scorer)
