@@ -156,13 +156,15 @@ def lo_subset(bucket: int) -> bool:
     return bucket >= LO_SUBSET_BUCKET
 
 
-def lo_judged(cls: type[Model], start, theta, points, n_valid, threshold, gate=None,
-              n_chunks=None, scorer: Scorer = DEFAULT_SCORER):
+def lo_judged(cls: type[Model], start, theta, points, n_valid, threshold, bounds=None,
+              normals=None, n_chunks=None, scorer: Scorer = DEFAULT_SCORER):
     """LO's result theta (P,) from ``start`` (P,) on padded points (B, 3), judged on all
     n_valid points: (theta, its cost, inlier count) where its cost is at most the
     start's, else (start, cost, count), so that LO never returns a worse hypothesis
-    than it was given (``scoring.score_one`` of each, ``gate`` and ``n_chunks`` as
-    there: two hypotheses on the vector axis of one pass ran slower than two passes)."""
+    than it was given (``scoring.score_one`` of each, gated on ``normals`` (B, 3) at
+    ``bounds.normal_cos`` if given: two hypotheses on the vector axis of one pass ran
+    slower than two passes)."""
+    gate = None if normals is None else (normals, bounds.normal_cos)
     old_cost, old_count = score_one(cls, start, points, n_valid, threshold, gate, n_chunks,
                                     scorer)
     cost, count = score_one(cls, theta, points, n_valid, threshold, gate, n_chunks, scorer)
@@ -221,9 +223,8 @@ def _refine_theta(cls: type[Model], theta, points, n_valid, threshold,
                                                   batched_like(lo_start(theta), theta))
     if not lo_subset(points.shape[0]):
         return found, cost, count
-    return lo_judged(cls, theta, found, points, n_valid, threshold,
-                     None if normals is None else (normals, bounds.normal_cos), n_chunks,
-                     scorer)
+    return lo_judged(cls, theta, found, points, n_valid, threshold, bounds, normals,
+                     n_chunks, scorer)
 
 
 def lo_start(theta):
@@ -398,9 +399,8 @@ def compacted(cls: type[Model], thetas, points, n_valid, threshold, max_rounds: 
         return theta, cost, found
 
     def judged(starts, theta, points, n_valid, threshold, bounds, normals):  # one cloud's
-        gate = None if normals is None else (normals, bounds.normal_cos)
-        return jax.vmap(lambda s, t: lo_judged(cls, s, t, points, n_valid, threshold, gate,
-                                               n_chunks, scorer))(starts, theta)
+        return jax.vmap(lambda s, t: lo_judged(cls, s, t, points, n_valid, threshold, bounds,
+                                               normals, n_chunks, scorer))(starts, theta)
 
     return jax.vmap(judged)(thetas, theta, points, n_valid, threshold, bounds, normals)
 
